@@ -1,0 +1,157 @@
+"""Organised range images and levelling (spec 1.2).
+
+A range image has ``rows x cols`` pixels; row ``v`` is a horizontal scan line at elevation
+``elevation_deg[v]`` (row 0 at the top, elevations decreasing), column ``u`` is at azimuth
+``azimuth_deg[u]`` (increasing). Sensor-frame point of a pixel:
+``x = r cos(el) cos(az), y = r cos(el) sin(az), z = r sin(el)``.
+
+Levelling: the scanner reports its measured ``roll`` (about x) and ``pitch`` (about y). A point
+in the scanner's own frame ``p_s`` is rotated into the horizontally levelled sub-map frame by
+``p = R_y(pitch) @ R_x(roll) @ p_s`` (origin kept at the sensor, z up).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+
+
+def levelling_rotation(roll_deg: float, pitch_deg: float) -> np.ndarray:
+    """Rotation taking scanner-frame vectors into the levelled frame, ``R_y(pitch) R_x(roll)``."""
+    r, p = np.radians([roll_deg, pitch_deg])
+    rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+    return ry @ rx
+
+
+def spherical_to_xyz(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: np.ndarray) -> np.ndarray:
+    """Sensor-frame points (rows, cols, 3) of an organised range image; NaN where no return."""
+    az = np.radians(np.asarray(azimuth_deg, dtype=np.float64))[None, :]
+    el = np.radians(np.asarray(elevation_deg, dtype=np.float64))[:, None]
+    r = np.asarray(range_m, dtype=np.float64)
+    ce = np.cos(el)
+    return np.stack([r * ce * np.cos(az), r * ce * np.sin(az), r * np.sin(el) * np.ones_like(az)], axis=-1)
+
+
+@dataclass
+class RangeImage:
+    """An organised range image in the scanner's frame plus its measured tilt.
+
+    ``range_m`` (rows, cols) float32 with NaN for no return; ``azimuth_deg`` (cols,),
+    ``elevation_deg`` (rows,); optional ``intensity`` (rows, cols) float32 and ``rgb``
+    (rows, cols, 3) uint8. ``xyz`` gives the levelled points.
+    """
+
+    range_m: np.ndarray
+    azimuth_deg: np.ndarray
+    elevation_deg: np.ndarray
+    tilt_deg: tuple[float, float] = (0.0, 0.0)
+    intensity: np.ndarray | None = None
+    rgb: np.ndarray | None = None
+    _xyz: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.range_m = np.asarray(self.range_m, dtype=np.float32)
+        self.azimuth_deg = np.asarray(self.azimuth_deg, dtype=np.float64)
+        self.elevation_deg = np.asarray(self.elevation_deg, dtype=np.float64)
+        if self.range_m.ndim != 2:
+            raise ValueError(f"range: expected a 2-D array, got shape {self.range_m.shape}")
+        rows, cols = self.range_m.shape
+        if self.azimuth_deg.shape != (cols,):
+            raise ValueError(f"azimuth_deg: expected {cols} values, got {self.azimuth_deg.shape}")
+        if self.elevation_deg.shape != (rows,):
+            raise ValueError(f"elevation_deg: expected {rows} values, got {self.elevation_deg.shape}")
+        bad = ~np.isfinite(self.range_m) | (self.range_m <= 0)
+        if bad.any():
+            self.range_m = np.where(bad, np.float32(np.nan), self.range_m)
+        if self.rgb is not None:
+            self.rgb = np.asarray(self.rgb, dtype=np.uint8)
+            if self.rgb.shape != (rows, cols, 3):
+                raise ValueError(f"rgb: expected shape {(rows, cols, 3)}, got {self.rgb.shape}")
+        if self.intensity is not None:
+            self.intensity = np.asarray(self.intensity, dtype=np.float32)
+            if self.intensity.shape != (rows, cols):
+                raise ValueError(f"intensity: expected shape {(rows, cols)}, got {self.intensity.shape}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.range_m.shape
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Boolean mask of pixels with a return."""
+        return np.isfinite(self.range_m)
+
+    @property
+    def azimuth_step_deg(self) -> float:
+        return float(np.median(np.diff(self.azimuth_deg))) if self.azimuth_deg.size > 1 else 0.0
+
+    @property
+    def elevation_step_deg(self) -> float:
+        return float(np.median(-np.diff(self.elevation_deg))) if self.elevation_deg.size > 1 else 0.0
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """Levelled points (rows, cols, 3) float64, NaN where no return (cached)."""
+        if self._xyz is None:
+            pts = spherical_to_xyz(self.range_m, self.azimuth_deg, self.elevation_deg)
+            if any(self.tilt_deg):
+                pts = pts @ levelling_rotation(*self.tilt_deg).T
+            self._xyz = pts
+        return self._xyz
+
+    # ---- Arrow / Parquet form -------------------------------------------------------------
+    def to_table(self) -> pa.Table:
+        """Valid pixels as an Arrow table (row, col, range_m, x, y, z[, intensity, r, g, b]).
+
+        The image geometry (angles, tilt) lives in the schema metadata so that the organised
+        image is restored exactly by :meth:`from_table`.
+        """
+        v, u = np.nonzero(self.valid)
+        pts = self.xyz[v, u]
+        cols = {
+            "row": pa.array(v.astype(np.int32)),
+            "col": pa.array(u.astype(np.int32)),
+            "range_m": pa.array(self.range_m[v, u]),
+            "x": pa.array(pts[:, 0].astype(np.float32)),
+            "y": pa.array(pts[:, 1].astype(np.float32)),
+            "z": pa.array(pts[:, 2].astype(np.float32)),
+        }
+        if self.intensity is not None:
+            cols["intensity"] = pa.array(self.intensity[v, u])
+        if self.rgb is not None:
+            for i, name in enumerate("rgb"):
+                cols[name] = pa.array(self.rgb[v, u, i])
+        meta = {
+            "forestmap.kind": "range_image",
+            "azimuth_deg": json.dumps(self.azimuth_deg.tolist()),
+            "elevation_deg": json.dumps(self.elevation_deg.tolist()),
+            "tilt_deg": json.dumps(list(map(float, self.tilt_deg))),
+            "has_rgb": json.dumps(self.rgb is not None),
+            "has_intensity": json.dumps(self.intensity is not None),
+        }
+        return pa.table(cols).replace_schema_metadata({k: str(v) for k, v in meta.items()})
+
+    @classmethod
+    def from_table(cls, table: pa.Table) -> RangeImage:
+        meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
+        az = np.asarray(json.loads(meta["azimuth_deg"]), dtype=np.float64)
+        el = np.asarray(json.loads(meta["elevation_deg"]), dtype=np.float64)
+        tilt = tuple(json.loads(meta.get("tilt_deg", "[0, 0]")))
+        shape = (el.size, az.size)
+        v = table.column("row").to_numpy()
+        u = table.column("col").to_numpy()
+        rng = np.full(shape, np.nan, dtype=np.float32)
+        rng[v, u] = table.column("range_m").to_numpy()
+        intensity = rgb = None
+        if json.loads(meta.get("has_intensity", "false")):
+            intensity = np.full(shape, np.nan, dtype=np.float32)
+            intensity[v, u] = table.column("intensity").to_numpy()
+        if json.loads(meta.get("has_rgb", "false")):
+            rgb = np.zeros(shape + (3,), dtype=np.uint8)
+            for i, name in enumerate("rgb"):
+                rgb[v, u, i] = table.column(name).to_numpy()
+        return cls(rng, az, el, (float(tilt[0]), float(tilt[1])), intensity, rgb)

@@ -1,0 +1,155 @@
+"""The asset store: every asset output as Parquet, written atomically, on any fsspec URL.
+
+An asset output is either one table (``pandas.DataFrame`` or ``pyarrow.Table``), stored as
+``<base>/<campaign>/<asset>/<partition>.parquet``, or a *bundle* (``dict`` of name -> table),
+stored as a folder ``<...>.bundle/`` holding one ``<name>.parquet`` per table. Files are written
+under a temporary name and renamed into place, so a failed or concurrent run never leaves a
+partial file behind.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+from dagster import ConfigurableIOManagerFactory, InputContext, OutputContext, UPathIOManager
+from upath import UPath
+
+DEFAULT_HOME = "~/.forestmap"
+
+
+def forestmap_home() -> Path:
+    """The project's home folder: ``$FORESTMAP_HOME`` or ``~/.forestmap``."""
+    return Path(os.environ.get("FORESTMAP_HOME", DEFAULT_HOME)).expanduser()
+
+
+def default_store_url() -> str:
+    """``$FORESTMAP_STORE`` (any fsspec URL) or ``<home>/store``."""
+    return os.environ.get("FORESTMAP_STORE") or str(forestmap_home() / "store")
+
+
+def _as_arrow(obj: pd.DataFrame | pa.Table) -> pa.Table:
+    if isinstance(obj, pa.Table):
+        return obj
+    if isinstance(obj, pd.DataFrame):
+        return pa.Table.from_pandas(obj, preserve_index=False)
+    raise TypeError(f"expected a pandas DataFrame or pyarrow Table, got {type(obj).__name__}")
+
+
+def _tmp_sibling(path: UPath) -> UPath:
+    return path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:12]}")
+
+
+def _move(src: UPath, dst: UPath) -> None:
+    if src.protocol in ("", "file", "local"):
+        os.replace(src.path, dst.path)
+    else:
+        src.fs.mv(src.path, dst.path, recursive=True)
+
+
+def write_table_atomic(table: pd.DataFrame | pa.Table, path: str | os.PathLike | UPath) -> None:
+    """Write one Parquet file under a temporary name, then rename it into place."""
+    path = UPath(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(path)
+    try:
+        with tmp.open("wb") as f:
+            pq.write_table(_as_arrow(table), f, compression="zstd")
+        _move(tmp, path)
+    except BaseException:
+        if tmp.exists():
+            tmp.unlink()
+        raise
+
+
+def read_table(path: str | os.PathLike | UPath) -> pa.Table:
+    with UPath(path).open("rb") as f:
+        return pq.read_table(f)
+
+
+def _remove_tree(path: UPath) -> None:
+    if path.protocol in ("", "file", "local"):
+        import shutil
+
+        shutil.rmtree(path.path, ignore_errors=True)
+    else:
+        path.fs.rm(path.path, recursive=True)
+
+
+def write_bundle_atomic(bundle: dict[str, Any], path: UPath) -> None:
+    """Write a folder of Parquet tables; the folder appears complete or not at all."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(path)
+    tmp.mkdir(parents=True, exist_ok=True)
+    try:
+        for name, table in bundle.items():
+            with (tmp / f"{name}.parquet").open("wb") as f:
+                pq.write_table(_as_arrow(table), f, compression="zstd")
+        if path.exists():
+            old = _tmp_sibling(path)
+            _move(path, old)
+            _move(tmp, path)
+            _remove_tree(old)
+        else:
+            _move(tmp, path)
+    except BaseException:
+        if tmp.exists():
+            _remove_tree(tmp)
+        raise
+
+
+def read_bundle(path: UPath) -> dict[str, pd.DataFrame]:
+    return {
+        p.name.removesuffix(".parquet"): read_table(p).to_pandas()
+        for p in sorted(path.iterdir())
+        if p.name.endswith(".parquet")
+    }
+
+
+class ParquetIOManager(UPathIOManager):
+    """Stores tables as ``.parquet`` and bundles as ``.bundle/`` folders, atomically."""
+
+    extension = None
+
+    def _table_path(self, path: UPath) -> UPath:
+        return path.with_name(path.name + ".parquet")
+
+    def _bundle_path(self, path: UPath) -> UPath:
+        return path.with_name(path.name + ".bundle")
+
+    def dump_to_path(self, context: OutputContext, obj: Any, path: UPath) -> None:
+        if obj is None:
+            return
+        if isinstance(obj, dict):
+            write_bundle_atomic(obj, self._bundle_path(path))
+        else:
+            write_table_atomic(obj, self._table_path(path))
+
+    def load_from_path(self, context: InputContext, path: UPath) -> Any:
+        table_path = self._table_path(path)
+        if table_path.exists():
+            table = read_table(table_path)
+            if (table.schema.metadata or {}).get(b"forestmap.kind"):
+                return table  # keep Arrow metadata (e.g. range images)
+            return table.to_pandas()
+        bundle_path = self._bundle_path(path)
+        if bundle_path.exists():
+            return read_bundle(bundle_path)
+        raise FileNotFoundError(f"no stored output at {table_path} (has the asset been materialised?)")
+
+    def path_exists(self, path: UPath) -> bool:
+        return self._table_path(path).exists() or self._bundle_path(path).exists()
+
+
+class ParquetStore(ConfigurableIOManagerFactory):
+    """The forestmap asset store; ``base_url`` is a local folder or any fsspec URL."""
+
+    base_url: str = ""
+
+    def create_io_manager(self, context) -> ParquetIOManager:
+        return ParquetIOManager(base_path=UPath(self.base_url or default_store_url()))

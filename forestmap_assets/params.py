@@ -1,0 +1,192 @@
+"""One parameter model per pipeline stage, with the thesis values as presets.
+
+Presets come from Forsman (2001) Tables 4.1-4.3 and the registration settings of spec 6.6
+(`reference/forsman_spec.md`). A campaign picks a preset with ``environment`` and overrides
+single keys under ``params`` (DESIGN.md 2.1). Each stage's resolved section is hashed into the
+code version of that stage's Dagster assets, so changing one stage's parameters makes exactly
+that stage and its downstream stale.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+Environment = Literal["forest", "outdoor", "indoor"]
+
+
+class _Stage(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    def digest(self) -> str:
+        """Short stable hash of this section's values (for Dagster code versions)."""
+        text = json.dumps(self.model_dump(mode="json"), sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+class SegmentationParams(_Stage):
+    """Scan-line segmentation, spec 2 / Table 4.1."""
+
+    min_width_m: float = 0.06
+    max_width_m: float = 1.0
+    max_occluder_m: float = 0.04
+    range_sigma_m: float = 0.025
+    range_step_m: float = 0.11
+    min_points: int = 4
+    outlier_sigmas: float = 3.0  # T_out = 0.5 W + outlier_sigmas * sigma (Eq. 4.7)
+    link_range_step_m: float = 0.11  # (inferred) max |delta r_mid| to link segments vertically
+
+
+class CircleParams(_Stage):
+    """Circle models, spec 3 / Table 4.2."""
+
+    symmetry_threshold_m: float = 0.0041
+    initial_symmetry_factor: float = 2.0  # (inferred) relaxation of the symmetry test, initial phase
+    collect_height_m: float = 0.15
+    max_neighbour_segments: int = 14
+    initial_neighbour_segments: int = 2  # (inferred) +-2 segments in the initial phase
+    axis_span_m: float = 0.6
+    iterations: int = 2
+    max_iterations: int = 5
+    robust_sigmas: float = 3.0
+    robust_max_rounds: int = 10
+    max_axis_tilt_deg: float = 30.0
+    fit: Literal["linear", "geometric"] = "linear"
+
+
+class CylinderParams(_Stage):
+    """Cylinder (truncated-cone) segments, spec 4 / Table 4.2."""
+
+    min_length_m: float = 0.5
+    curvature_deg: float = 12.0
+    max_gap_m: float = 0.24
+    min_circles: int = 3
+
+
+class LineParams(_Stage):
+    """Horizontal wall/ceiling border lines, spec 5 / Table 4.3 (outdoor values)."""
+
+    cell_m: float = 0.2
+    tangent_interval_m: float = 1.4
+    tangent_change_deg: float = 90.0
+    end_distance_m: float = 0.4
+    min_length_m: float = 1.5
+    max_inclination_deg: float = 5.0
+    enabled: bool = True
+    max_range_m: float = 40.0
+
+
+class ElevationParams(_Stage):
+    """Per-scan lowest/highest-hit grid, spec 9."""
+
+    cell_m: float = 0.1
+    mode: Literal["lowest", "highest"] = "lowest"
+    render_cell_m: float = 0.6
+
+
+class SubmapParams(_Stage):
+    """Registration points along feature centre lines, spec 6.2 (Delta_d)."""
+
+    spacing_m: float = 0.05
+
+
+class RegistrationParams(_Stage):
+    """Branch-and-bound registration, spec 6.3-6.6 (forest set of Table 6.6)."""
+
+    sigma_m: float = 0.035
+    inlier_share: float = 0.3
+    outlier_distance_m: float = 0.3
+    final_cell_m: float = 0.02
+    xy_m: float = 5.0
+    z_m: float = 1.25
+    heading_deg: float = 60.0
+
+
+class MappingParams(_Stage):
+    """Optimal map and residual checks, spec 8."""
+
+    residual_sigmas: float = 3.0
+    z_residual_sigmas: float = 8.0
+    method: Literal["optimal", "chain"] = "optimal"
+    covariance: Literal["published", "full"] = "published"
+
+
+class Params(BaseModel):
+    """All stages' parameters for one campaign."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    segmentation: SegmentationParams = SegmentationParams()
+    circles: CircleParams = CircleParams()
+    cylinders: CylinderParams = CylinderParams()
+    lines: LineParams = LineParams()
+    elevation: ElevationParams = ElevationParams()
+    submaps: SubmapParams = SubmapParams()
+    registration: RegistrationParams = RegistrationParams()
+    mapping: MappingParams = MappingParams()
+
+    def digest(self, stage: str) -> str:
+        return getattr(self, stage).digest()
+
+
+STAGES = tuple(Params.model_fields)
+
+# Differences from the forest defaults above (Tables 4.1-4.3, spec 6.6).
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "forest": {"lines": {"enabled": False}},
+    "outdoor": {
+        "circles": {"symmetry_threshold_m": 0.0041},
+        "cylinders": {"min_length_m": 0.3, "curvature_deg": 10.0},
+        "registration": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156},
+    },
+    "indoor": {
+        "segmentation": {"min_width_m": 0.2},
+        "circles": {"symmetry_threshold_m": 0.0007},
+        "cylinders": {"min_length_m": 1.0, "curvature_deg": 12.0},
+        "lines": {
+            "cell_m": 0.1,
+            "tangent_interval_m": 1.0,
+            "tangent_change_deg": 80.0,
+            "end_distance_m": 0.15,
+            "min_length_m": 2.0,
+        },
+        "registration": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195},
+    },
+}
+
+# The thesis experiments' registration settings (spec 6.6), selectable by name.
+REGISTRATION_PRESETS: dict[str, dict[str, float]] = {
+    "fe_demo": {"xy_m": 5.0, "z_m": 1.25, "heading_deg": 180.0, "final_cell_m": 0.04},
+    "indoor": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195},
+    "parking_lot": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156},
+    "forest": {"xy_m": 5.0, "z_m": 1.25, "heading_deg": 60.0, "final_cell_m": 0.02},
+}
+
+
+class ParamsError(ValueError):
+    """A parameter override that does not fit the model."""
+
+
+def resolve_params(
+    environment: str = "forest",
+    overrides: dict[str, dict[str, Any]] | None = None,
+) -> Params:
+    """Preset for ``environment`` with a campaign's per-stage ``overrides`` applied."""
+    if environment not in PRESETS:
+        raise ParamsError(f"environment: {environment!r} is not one of {sorted(PRESETS)}")
+    merged: dict[str, dict[str, Any]] = {k: dict(v) for k, v in PRESETS[environment].items()}
+    for stage, values in (overrides or {}).items():
+        if stage not in STAGES:
+            raise ParamsError(f"params.{stage}: unknown stage (expected one of {', '.join(STAGES)})")
+        if not isinstance(values, dict):
+            raise ParamsError(f"params.{stage}: expected a mapping of keys to values")
+        merged.setdefault(stage, {}).update(values)
+    try:
+        return Params(**merged)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"])
+        raise ParamsError(f"params.{where}: {err['msg']}") from None
