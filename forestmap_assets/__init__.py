@@ -1,0 +1,5 @@
+"""forestmap: registered, checked 3-D forest maps from terrestrial laser scans."""
+
+from .access import load_asset
+
+__all__ = ["load_asset"]

@@ -1,0 +1,43 @@
+"""Reading stored asset outputs outside Dagster (notebooks, exports)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pyarrow as pa
+from upath import UPath
+
+from .campaign import Campaign, load_campaign
+from .core.range_image import RangeImage
+from .io.store import default_store_url, read_bundle, read_table
+
+
+def _campaign_key(campaign: str | Path | Campaign) -> str:
+    if isinstance(campaign, Campaign):
+        return campaign.key
+    path = Path(campaign).expanduser()
+    if (path / "campaign.yaml").is_file():
+        return load_campaign(path).key
+    return str(campaign)
+
+
+def load_asset(name: str, *, campaign: str | Path | Campaign, scan: str | None = None, store_url: str | None = None):
+    """One stored asset output: a DataFrame, a dict of DataFrames (bundles) or a RangeImage.
+
+    ``campaign`` is a campaign folder, a :class:`Campaign` or its key; ``scan`` selects the
+    partition of a per-scan asset. Raises ``FileNotFoundError`` (one line) when the asset has
+    not been materialised.
+    """
+    base = UPath(store_url or default_store_url()) / _campaign_key(campaign) / name
+    stem = base / scan if scan is not None else base
+    table_path = stem.with_name(stem.name + ".parquet")
+    bundle_path = stem.with_name(stem.name + ".bundle")
+    if table_path.exists():
+        table: pa.Table = read_table(table_path)
+        if (table.schema.metadata or {}).get(b"forestmap.kind") == b"range_image":
+            return RangeImage.from_table(table)
+        return table.to_pandas()
+    if bundle_path.exists():
+        return read_bundle(bundle_path)
+    what = f"{name}[{scan}]" if scan is not None else name
+    raise FileNotFoundError(f"{what} of campaign {_campaign_key(campaign)!r} is not in the store {base.parent} (run `forestmap run` first)")

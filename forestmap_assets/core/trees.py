@@ -1,0 +1,176 @@
+"""From cylinder segments in the global frame to one row per physical tree (spec 9, 10.6).
+
+The thesis stops at the integrated map of cylinders; merging them into trees with a diameter at
+breast height is forestmap's step (inferred, parameters below):
+
+1. cylinders of all scans are grouped into stems: two cylinders belong to the same stem when
+   their axes, evaluated at a common height, are closer than ``merge_factor`` x the smaller
+   radius + ``merge_tolerance_m`` (different stems cannot be closer than the sum of radii);
+2. the ground under a stem is the median of the lowest-hit elevation cells in an annulus
+   around it (``ground_ring_m``), falling back to the lowest cylinder end;
+3. breast height is ``breast_height_m`` (1.3 m) above that ground; the stem position is the
+   n_circles-weighted mean of the cylinder axes evaluated there, and DBH is twice the
+   weighted mean truncated-cone radius at that height over cylinders reaching within
+   ``dbh_reach_m`` of it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+TREE_COLUMNS = ["tree_id", "x", "y", "z", "dbh_m", "n_scans", "n_cylinders", "visible_length_m"]
+
+
+def cylinders_to_global(per_scan: dict[str, pd.DataFrame], poses: dict[str, tuple]) -> pd.DataFrame:
+    """Every cylinder of the registered scans in the global frame, with its ``scan``."""
+    from .geometry import transform_points
+
+    frames = []
+    for scan, cyl in per_scan.items():
+        if scan not in poses or cyl is None or cyl.empty:
+            continue
+        g = cyl.copy()
+        p0 = transform_points(cyl[["x0", "y0", "z0"]].to_numpy(float), poses[scan])
+        p1 = transform_points(cyl[["x1", "y1", "z1"]].to_numpy(float), poses[scan])
+        g[["x0", "y0", "z0"]] = p0
+        g[["x1", "y1", "z1"]] = p1
+        g.insert(0, "scan", scan)
+        frames.append(g)
+    cols = ["scan", "cylinder_id", "x0", "y0", "z0", "x1", "y1", "z1", "radius_m", "r0_m", "r1_m", "n_circles"]
+    if not frames:
+        return pd.DataFrame({c: pd.Series(dtype="int64" if c in ("cylinder_id", "n_circles") else "float64") for c in cols}).astype({"scan": "object"})
+    out = pd.concat(frames, ignore_index=True)
+    return out
+
+
+def _axis_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
+    """xy of each cylinder's axis line at heights ``z`` (extrapolated along the axis)."""
+    p0 = cyl[["x0", "y0", "z0"]].to_numpy(float)
+    p1 = cyl[["x1", "y1", "z1"]].to_numpy(float)
+    dz = p1[:, 2] - p0[:, 2]
+    t = np.where(np.abs(dz) > 1e-6, (z - p0[:, 2]) / np.where(np.abs(dz) > 1e-6, dz, 1.0), 0.0)
+    return p0[:, :2] + t[:, None] * (p1[:, :2] - p0[:, :2])
+
+
+def _radius_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
+    z0, z1 = cyl["z0"].to_numpy(float), cyl["z1"].to_numpy(float)
+    r0 = cyl["r0_m"].to_numpy(float) if "r0_m" in cyl else cyl["radius_m"].to_numpy(float)
+    r1 = cyl["r1_m"].to_numpy(float) if "r1_m" in cyl else cyl["radius_m"].to_numpy(float)
+    span = np.where(np.abs(z1 - z0) > 1e-6, z1 - z0, 1.0)
+    t = np.clip((z - z0) / span, 0.0, 1.0)  # no extrapolation of taper beyond the ends
+    return r0 + t * (r1 - r0)
+
+
+def group_stems(cyl: pd.DataFrame, merge_factor: float = 0.75, merge_tolerance_m: float = 0.06) -> np.ndarray:
+    """Stem label per cylinder (connected components of the 'same axis' relation)."""
+    n = len(cyl)
+    if n == 0:
+        return np.zeros(0, dtype=int)
+    mid = 0.5 * (cyl[["x0", "y0", "z0"]].to_numpy(float) + cyl[["x1", "y1", "z1"]].to_numpy(float))
+    radius = cyl["radius_m"].to_numpy(float)
+    pairs = cKDTree(mid[:, :2]).query_pairs(r=1.0, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.arange(n)
+    i, j = pairs[:, 0], pairs[:, 1]
+    # evaluate both axes at the middle of their height overlap (or between them)
+    lo = np.maximum(np.minimum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[i], np.minimum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[j])
+    hi = np.minimum(np.maximum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[i], np.maximum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[j])
+    zc = 0.5 * (lo + hi)
+    ai = _axis_at(cyl.iloc[i], zc)
+    aj = _axis_at(cyl.iloc[j], zc)
+    dist = np.hypot(*(ai - aj).T)
+    same = dist < merge_factor * np.minimum(radius[i], radius[j]) + merge_tolerance_m
+    graph = coo_matrix((np.ones(same.sum()), (i[same], j[same])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return labels
+
+
+def ground_under(xy: np.ndarray, radius: np.ndarray, grid_z: np.ndarray, x0: float, y0: float,
+                 cell_m: float, ring_m: tuple[float, float] = (0.15, 1.0)) -> np.ndarray:
+    """Median lowest-hit elevation in an annulus around each stem; NaN where no cell has data."""
+    out = np.full(len(xy), np.nan)
+    if grid_z is None or grid_z.size == 0:
+        return out
+    ny, nx = grid_z.shape
+    reach = int(np.ceil((ring_m[1] + radius.max(initial=0.0)) / cell_m)) + 1
+    offs = np.arange(-reach, reach + 1)
+    dx, dy = np.meshgrid(offs, offs)
+    for k, ((x, y), r) in enumerate(zip(xy, radius, strict=True)):
+        ix = int(np.floor((x - x0) / cell_m)) + dx
+        iy = int(np.floor((y - y0) / cell_m)) + dy
+        cx = x0 + (ix + 0.5) * cell_m
+        cy = y0 + (iy + 0.5) * cell_m
+        d = np.hypot(cx - x, cy - y)
+        ok = (d >= r + ring_m[0]) & (d <= r + ring_m[1]) & (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        if ok.any():
+            vals = grid_z[iy[ok], ix[ok]]
+            vals = vals[np.isfinite(vals)]
+            if vals.size:
+                out[k] = float(np.median(vals))
+    return out
+
+
+def merge_trees(
+    cyl: pd.DataFrame,
+    grid=None,
+    *,
+    breast_height_m: float = 1.3,
+    dbh_reach_m: float = 0.6,
+    merge_factor: float = 0.75,
+    merge_tolerance_m: float = 0.06,
+) -> tuple[pd.DataFrame, np.ndarray]:
+    """Trees (``TREE_COLUMNS``) from global cylinders; also each cylinder's tree id.
+
+    ``grid`` is an object with ``z`` (2-D, [iy, ix]), ``x0``, ``y0``, ``cell_m`` (the merged
+    lowest-hit elevation map) or None.
+    """
+    if cyl.empty:
+        return pd.DataFrame({c: pd.Series(dtype="float64") for c in TREE_COLUMNS}).astype(
+            {"tree_id": "int64", "n_scans": "int64", "n_cylinders": "int64"}
+        ), np.zeros(0, dtype=int)
+    labels = group_stems(cyl, merge_factor, merge_tolerance_m)
+    rows = []
+    zlo = np.minimum(cyl["z0"].to_numpy(float), cyl["z1"].to_numpy(float))
+    zhi = np.maximum(cyl["z0"].to_numpy(float), cyl["z1"].to_numpy(float))
+    weights = cyl["n_circles"].to_numpy(float)
+    radius = cyl["radius_m"].to_numpy(float)
+    stems = np.unique(labels)
+    # first pass: approximate stem xy (at the lowest visible point) for the ground look-up
+    approx_xy = np.array([_axis_at(cyl[labels == s], np.full((labels == s).sum(), zlo[labels == s].min())).mean(0) for s in stems])
+    approx_r = np.array([np.average(radius[labels == s], weights=weights[labels == s]) for s in stems])
+    if grid is not None:
+        ground = ground_under(approx_xy, approx_r, grid.z, grid.x0, grid.y0, grid.cell_m)
+    else:
+        ground = np.full(len(stems), np.nan)
+    tree_of_cyl = np.zeros(len(cyl), dtype=int)
+    for k, s in enumerate(stems):
+        m = labels == s
+        g = ground[k] if np.isfinite(ground[k]) else zlo[m].min()
+        zbh = g + breast_height_m
+        sub = cyl[m]
+        zb = np.full(m.sum(), zbh)
+        # distance in height from breast height to each cylinder's extent
+        gap = np.maximum(0.0, np.maximum(zlo[m] - zbh, zbh - zhi[m]))
+        near = gap <= dbh_reach_m
+        use = near if near.any() else gap == gap.min()
+        w = weights[m][use]
+        xy = np.average(_axis_at(sub[use], zb[use]), axis=0, weights=w)
+        dbh = 2.0 * float(np.average(_radius_at(sub[use], zb[use]), weights=w)) if near.any() else np.nan
+        # visible length: union of the cylinders' height intervals
+        order = np.argsort(zlo[m])
+        total, cur_lo, cur_hi = 0.0, None, None
+        for lo, hi in zip(zlo[m][order], zhi[m][order], strict=True):
+            if cur_hi is None or lo > cur_hi:
+                total += 0.0 if cur_hi is None else cur_hi - cur_lo
+                cur_lo, cur_hi = lo, hi
+            else:
+                cur_hi = max(cur_hi, hi)
+        total += cur_hi - cur_lo
+        tree_of_cyl[m] = k + 1
+        rows.append((k + 1, xy[0], xy[1], g, dbh, sub["scan"].nunique() if "scan" in sub else 1, int(m.sum()), total))
+    trees = pd.DataFrame(rows, columns=TREE_COLUMNS)
+    return trees, tree_of_cyl

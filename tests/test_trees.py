@@ -1,0 +1,70 @@
+"""Merging cylinder segments of several scans into trees with DBH (core/trees.py)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+
+from forestmap_assets.core.geometry import compose, relative_pose, transform_points, wrap_deg
+from forestmap_assets.core.trees import cylinders_to_global, merge_trees
+
+
+def _cyl(cid, base, lean, r0, r1, z0, z1, n=10):
+    p0 = np.array(base) + np.array([*lean, 0]) * z0 + [0, 0, z0]
+    p1 = np.array(base) + np.array([*lean, 0]) * z1 + [0, 0, z1]
+    return dict(cylinder_id=cid, x0=p0[0], y0=p0[1], z0=p0[2], x1=p1[0], y1=p1[1], z1=p1[2],
+                radius_m=(r0 + r1) / 2, r0_m=r0, r1_m=r1, n_circles=n, length_m=z1 - z0)
+
+
+def test_pose_helpers_round_trip():
+    a, b = (1.0, 2.0, 0.5, 30.0), (-3.0, 4.0, 0.1, 170.0)
+    rel = relative_pose(b, a)
+    back = compose(a, rel)
+    np.testing.assert_allclose(back[:3], b[:3], atol=1e-12)
+    assert abs(wrap_deg(back[3] - b[3])) < 1e-9
+    assert wrap_deg(-180.0) == 180.0 and wrap_deg(190.0) == -170.0
+    p = transform_points(np.array([[1.0, 0, 0]]), (0, 0, 0, 90))
+    np.testing.assert_allclose(p, [[0, 1, 0]], atol=1e-12)
+
+
+def test_merge_trees_from_two_scans():
+    # three stems on flat ground at z = 0.2; scan S sees them from a pose (5, 1, 0.1, 40 deg)
+    ground = 0.2
+    stems = [((0.0, 0.0, ground), (0.03, 0.0), 0.16, 0.14), ((3.0, 1.0, ground), (0.0, 0.02, ), 0.08, 0.07),
+             ((-2.0, 4.0, ground), (0.0, 0.0), 0.25, 0.24)]
+    t_rows, s_rows = [], []
+    pose_s = (5.0, 1.0, 0.1, 40.0)
+    for k, (base, lean, r0, r1) in enumerate(stems):
+        lean = (*lean, 0.0)[:2]
+        t_rows.append(_cyl(k, base, lean, r0 + 0.01 * (r1 - r0), r1, 0.5, 2.5))  # breast height inside
+        glob = pd.DataFrame([_cyl(k, base, lean, r0, r1, 1.0, 3.0)])
+        # express in S's frame: inverse of pose_s
+        for end in ("0", "1"):
+            pts = glob[[f"x{end}", f"y{end}", f"z{end}"]].to_numpy()
+            local = (pts - np.array(pose_s[:3])) @ np.array(
+                [[np.cos(np.radians(40)), -np.sin(np.radians(40)), 0], [np.sin(np.radians(40)), np.cos(np.radians(40)), 0], [0, 0, 1]])
+            glob[[f"x{end}", f"y{end}", f"z{end}"]] = local
+        s_rows.append(glob.iloc[0].to_dict())
+    per_scan = {"T": pd.DataFrame(t_rows), "S": pd.DataFrame(s_rows)}
+    cyl = cylinders_to_global(per_scan, {"T": (0, 0, 0, 0), "S": pose_s})
+    assert len(cyl) == 6 and set(cyl["scan"]) == {"T", "S"}
+    grid = SimpleNamespace(z=np.full((200, 200), ground), x0=-10.0, y0=-10.0, cell_m=0.1)
+    trees, tree_of = merge_trees(cyl, grid)
+    assert len(trees) == 3 and (trees["n_scans"] == 2).all() and (trees["n_cylinders"] == 2).all()
+    trees = trees.sort_values("x").reset_index(drop=True)
+    expected = sorted(stems, key=lambda s: s[0][0])
+    for row, (base, lean, r0, r1) in zip(trees.itertuples(), expected, strict=True):
+        lean = (*lean, 0.0)[:2]
+        zb = 1.3 + ground
+        assert abs(row.z - ground) < 1e-9
+        assert np.hypot(row.x - (base[0] + lean[0] * (zb)), row.y - (base[1] + lean[1] * zb)) < 0.01
+        assert abs(row.dbh_m - 2 * (r0 + (r1 - r0) * 0.4)) < 0.01
+        assert abs(row.visible_length_m - 2.5) < 1e-6
+
+
+def test_empty_inputs():
+    cyl = cylinders_to_global({}, {})
+    trees, labels = merge_trees(cyl)
+    assert trees.empty and list(trees.columns)[:3] == ["tree_id", "x", "y"] and labels.size == 0
