@@ -1,0 +1,287 @@
+"""Ground elevation maps (spec 9; Th. 2.1.5, 6.2 Fig. 6.4, 6.3 Fig. 6.7, 6.4 Figs 6.11-6.13).
+
+* :func:`elevation_grid`: per scan, the lowest (indoor, forest) or highest (parking lot) beam
+  hit z in every ``cell_m`` xy cell of the levelled scan frame, as a sparse table
+  ``ix, iy, z, n``; cell ``(ix, iy)`` covers ``[ix*cell, (ix+1)*cell) x [iy*cell, (iy+1)*cell)``.
+* :func:`merge_elevation`: every scan's cells transformed into the global frame with its pose
+  (rotation by the heading, xy translation, z offset) and combined by the same min/max rule.
+* :func:`render_grid`: the coarse 0.6 m rendering grid, each cell the mean of the 5 lowest
+  values among its fine cells (Figs 6.12-6.13).
+* :func:`save_elevation_npz`, :func:`load_elevation_npz`, :func:`elevation_png`: artefacts.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+
+from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.params import ElevationParams
+
+Mode = Literal["lowest", "highest"]
+ELEVATION_COLUMNS = ["ix", "iy", "z", "n"]
+
+
+@dataclass(frozen=True)
+class ElevationGrid:
+    """A dense elevation grid: ``z[iy, ix]`` (NaN = no value) of the cell covering
+    ``[x0 + ix*cell_m, x0 + (ix+1)*cell_m) x [y0 + iy*cell_m, y0 + (iy+1)*cell_m)``."""
+
+    z: np.ndarray
+    x0: float
+    y0: float
+    cell_m: float
+    mode: Mode = "lowest"
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """``(xmin, xmax, ymin, ymax)`` of the grid, for ``imshow(..., origin="lower")``."""
+        ny, nx = self.z.shape
+        return (self.x0, self.x0 + nx * self.cell_m, self.y0, self.y0 + ny * self.cell_m)
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Cell-centre coordinates ``(x[ix], y[iy])``."""
+        ny, nx = self.z.shape
+        return (
+            self.x0 + (np.arange(nx) + 0.5) * self.cell_m,
+            self.y0 + (np.arange(ny) + 0.5) * self.cell_m,
+        )
+
+
+def _points(data: RangeImage | np.ndarray | pd.DataFrame) -> np.ndarray:
+    if isinstance(data, RangeImage):
+        return data.xyz[data.valid]
+    if isinstance(data, pd.DataFrame):
+        return data[["x", "y", "z"]].to_numpy(dtype=np.float64)
+    pts = np.asarray(data, dtype=np.float64).reshape(-1, 3)
+    return pts[np.isfinite(pts).all(axis=1)]
+
+
+def _combine(
+    keys: np.ndarray, z: np.ndarray, mode: Mode
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lowest (or highest) ``z`` and count per distinct integer key (vectorised)."""
+    order = np.lexsort((z if mode == "lowest" else -z, keys))
+    k, zs = keys[order], z[order]
+    uniq, first, counts = np.unique(k, return_index=True, return_counts=True)
+    return uniq, zs[first], counts
+
+
+def elevation_grid(
+    data: RangeImage | np.ndarray | pd.DataFrame,
+    params: ElevationParams,
+    *,
+    max_distance_m: float | None = None,
+) -> pd.DataFrame:
+    """Lowest (or highest, ``params.mode``) hit z per ``params.cell_m`` xy cell (spec 9).
+
+    ``data`` is a range image (its levelled points), an (n, 3) array or a table with
+    ``x, y, z`` in the levelled scan frame. Returns the sparse table ``ix, iy, z, n`` (``n``
+    hits in the cell), sorted by ``iy, ix``. (inferred) ``max_distance_m`` limits the grid to
+    ``|x|, |y| < max_distance_m`` around the sensor (the thesis' 600 x 600 cells over 60 m).
+    """
+    pts = _points(data)
+    if max_distance_m is not None:
+        pts = pts[(np.abs(pts[:, 0]) < max_distance_m) & (np.abs(pts[:, 1]) < max_distance_m)]
+    if pts.shape[0] == 0:
+        return pd.DataFrame(
+            {
+                "ix": pd.Series(dtype="int64"),
+                "iy": pd.Series(dtype="int64"),
+                "z": pd.Series(dtype="float64"),
+                "n": pd.Series(dtype="int64"),
+            }
+        )
+    ij = np.floor(pts[:, :2] / params.cell_m).astype(np.int64)
+    lo = ij.min(axis=0)
+    span = ij.max(axis=0) - lo + 1
+    keys = (ij[:, 1] - lo[1]) * span[0] + (ij[:, 0] - lo[0])
+    uniq, z, n = _combine(keys, pts[:, 2], params.mode)
+    return pd.DataFrame(
+        {
+            "ix": uniq % span[0] + lo[0],
+            "iy": uniq // span[0] + lo[1],
+            "z": z.astype(np.float64),
+            "n": n.astype(np.int64),
+        },
+        columns=ELEVATION_COLUMNS,
+    )
+
+
+def merge_elevation(
+    grids: Sequence[tuple[pd.DataFrame, Sequence[float]]],
+    cell_m: float,
+    mode: Mode = "lowest",
+    *,
+    supersample: int = 2,
+) -> ElevationGrid:
+    """Merge per-scan elevation tables into one global grid (spec 9, Th. 6.4).
+
+    Each ``(table, pose)`` has pose = ``(x, y, z, heading_deg)`` of the scan in the global frame
+    and ``table`` cells of size ``cell_m``; every cell is transformed ``p_g = R_z(heading) p + t``
+    and the global cell keeps the min (``mode="lowest"``) or max of what falls into it.
+    (inferred) Each source cell is represented by ``supersample`` x ``supersample`` points
+    spread over it rather than by its centre only (``supersample=1``), so that a rotated grid
+    leaves no aliasing holes when re-binned at the same cell size.
+    """
+    xs, ys, zs = [], [], []
+    k = max(1, int(supersample))
+    offs = (np.arange(k) + 0.5) / k
+    ox, oy = (a.ravel() for a in np.meshgrid(offs, offs, indexing="xy"))
+    for table, pose in grids:
+        if len(table) == 0:
+            continue
+        px, py, pz, heading = (float(v) for v in pose)
+        ix = table["ix"].to_numpy(dtype=np.float64)[:, None]
+        iy = table["iy"].to_numpy(dtype=np.float64)[:, None]
+        lx = ((ix + ox[None, :]) * cell_m).ravel()
+        ly = ((iy + oy[None, :]) * cell_m).ravel()
+        c, s = np.cos(np.radians(heading)), np.sin(np.radians(heading))
+        xs.append(c * lx - s * ly + px)
+        ys.append(s * lx + c * ly + py)
+        zs.append(np.repeat(table["z"].to_numpy(dtype=np.float64) + pz, ox.size))
+    if not xs:
+        return ElevationGrid(np.full((0, 0), np.nan), 0.0, 0.0, float(cell_m), mode)
+    x, y, z = np.concatenate(xs), np.concatenate(ys), np.concatenate(zs)
+    gx = np.floor(x / cell_m).astype(np.int64)
+    gy = np.floor(y / cell_m).astype(np.int64)
+    gx0, gy0 = gx.min(), gy.min()
+    nx, ny = int(gx.max() - gx0 + 1), int(gy.max() - gy0 + 1)
+    keys = (gy - gy0) * nx + (gx - gx0)
+    uniq, zc, _ = _combine(keys, z, mode)
+    out = np.full(ny * nx, np.nan)
+    out[uniq] = zc
+    x0, y0 = float(gx0 * cell_m), float(gy0 * cell_m)
+    return ElevationGrid(out.reshape(ny, nx), x0, y0, float(cell_m), mode)
+
+
+def render_grid(grid: ElevationGrid, cell_m: float = 0.6, n_lowest: int = 5) -> ElevationGrid:
+    """Coarse rendering grid (spec 9, Figs 6.12-6.13): each ``cell_m`` cell is the mean of the
+    ``n_lowest`` smallest values among its fine cells that have values (inferred: of the largest
+    ones for a ``"highest"`` grid). Fine cells are assigned by their centres; the coarse grid
+    shares the fine grid's origin."""
+    ny, nx = grid.z.shape
+    iy, ix = np.nonzero(np.isfinite(grid.z))
+    if ix.size == 0:
+        return ElevationGrid(np.full((0, 0), np.nan), grid.x0, grid.y0, float(cell_m), grid.mode)
+    cx = np.floor((ix + 0.5) * grid.cell_m / cell_m).astype(np.int64)
+    cy = np.floor((iy + 0.5) * grid.cell_m / cell_m).astype(np.int64)
+    ncx = int(np.floor(nx * grid.cell_m / cell_m - 1e-9)) + 1
+    ncy = int(np.floor(ny * grid.cell_m / cell_m - 1e-9)) + 1
+    keys = cy * ncx + cx
+    z = grid.z[iy, ix]
+    order = np.lexsort((z if grid.mode == "lowest" else -z, keys))
+    k, zs = keys[order], z[order]
+    start = np.searchsorted(k, k, side="left")
+    rank = np.arange(k.size) - start
+    sel = rank < n_lowest
+    sums = np.bincount(k[sel], zs[sel], minlength=ncx * ncy)
+    counts = np.bincount(k[sel], minlength=ncx * ncy)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(counts > 0, sums / counts, np.nan)
+    return ElevationGrid(out.reshape(ncy, ncx), grid.x0, grid.y0, float(cell_m), grid.mode)
+
+
+def _atomic_write(path: str | os.PathLike, write) -> Path:
+    """Call ``write(file)`` on a temporary file next to ``path``, then ``os.replace`` it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def save_elevation_npz(path: str | os.PathLike, grid: ElevationGrid) -> Path:
+    """Write ``z, x0, y0, cell_m, mode`` to an ``.npz`` file atomically."""
+    return _atomic_write(
+        path,
+        lambda fh: np.savez_compressed(
+            fh,
+            z=grid.z,
+            x0=np.float64(grid.x0),
+            y0=np.float64(grid.y0),
+            cell_m=np.float64(grid.cell_m),
+            mode=np.str_(grid.mode),
+        ),
+    )
+
+
+def load_elevation_npz(path: str | os.PathLike) -> ElevationGrid:
+    """Read a grid written by :func:`save_elevation_npz`."""
+    with np.load(path, allow_pickle=False) as f:
+        return ElevationGrid(
+            z=f["z"].astype(np.float64),
+            x0=float(f["x0"]),
+            y0=float(f["y0"]),
+            cell_m=float(f["cell_m"]),
+            mode=str(f["mode"]),  # type: ignore[arg-type]
+        )
+
+
+def _xy(table) -> np.ndarray:
+    if isinstance(table, pd.DataFrame):
+        return table[["x", "y"]].to_numpy(dtype=np.float64)
+    return np.asarray(table, dtype=np.float64).reshape(-1, np.shape(table)[-1])[:, :2]
+
+
+def elevation_png(
+    path: str | os.PathLike,
+    grid: ElevationGrid,
+    title: str,
+    scan_positions: pd.DataFrame | np.ndarray | None = None,
+    trees: pd.DataFrame | np.ndarray | None = None,
+    *,
+    dpi: int = 120,
+) -> Path:
+    """Picture of an elevation grid (spec 9, Figs 6.4, 6.7, 6.11): colour = elevation with a
+    labelled colour bar in metres, axes in metres, equal aspect; optional scan positions
+    (table with ``x, y`` and optional ``scan`` labels, or an (n, 2+) array) and tree markers
+    (``x, y``). Written atomically (temporary file + ``os.replace``)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7.0, 6.0))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    if grid.z.size:
+        im = ax.imshow(
+            np.ma.masked_invalid(grid.z),
+            origin="lower",
+            extent=grid.extent,
+            cmap="terrain",
+            interpolation="nearest",
+        )
+        cbar = fig.colorbar(im, ax=ax, shrink=0.85)
+        cbar.set_label(f"elevation (m), {grid.mode} hit per {grid.cell_m:g} m cell")
+    if trees is not None and len(trees):
+        t = _xy(trees)
+        ax.scatter(t[:, 0], t[:, 1], s=12, marker="^", facecolors="none", edgecolors="darkgreen",
+                   linewidths=0.8, label="trees")
+    if scan_positions is not None and len(scan_positions):
+        s = _xy(scan_positions)
+        ax.scatter(s[:, 0], s[:, 1], s=40, marker="o", c="red", edgecolors="black", label="scans")
+        if isinstance(scan_positions, pd.DataFrame) and "scan" in scan_positions:
+            for (x, y), name in zip(s, scan_positions["scan"].astype(str), strict=True):
+                ax.annotate(name, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=8)
+    if (trees is not None and len(trees)) or (scan_positions is not None and len(scan_positions)):
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title)
+    fig.tight_layout()
+    return _atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=dpi))
