@@ -1,0 +1,270 @@
+"""A virtual Riegl LMS-Z210 (spec 1.1, 1.2): true ray casting with a first-return wide beam.
+
+Image geometry (spec 1.2): ``rows x cols`` = 720 x 3000 at full resolution over 79 deg x
+330 deg (JP §II-A), elevation symmetric about the horizon, row 0 at the top, azimuth
+increasing with the column; "half"/"quarter" divide both counts by 2/4 over the same field of
+view. Range noise is Gaussian with sigma 0.025 m (Table 6.1).
+
+First-return beam (spec 1.1 "Consequences"): the beam leaves the housing 0.042 m wide and
+diverges by 3 mrad, i.e. its footprint diameter at range r is ``0.042 + 0.003 r``. A pixel whose
+footprint touches a nearer object returns the nearer range, so thin objects appear wider. The
+footprint is sampled efficiently (inferred): the centre rays are cast first; pixels within one
+footprint radius of an object boundary (neighbouring pixels hitting different objects) get
+``sub_rays`` extra rays on the footprint's edge circle (exit offset 0.021 m, half-angle
+1.5 mrad), and the nearest of the centre and sub-ray returns is the pixel's range when it is
+nearer than the centre return by more than ``mix_min_step_m`` (a different, nearer surface; the
+small range spread of one oblique surface across its own footprint is not modelled).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from forestmap_assets.core.range_image import RangeImage, levelling_rotation
+
+from .forest import KIND_BRANCH, KIND_FOLIAGE, KIND_GROUND, KIND_STEM, KIND_UNDERSTOREY, NO_RETURN
+
+RESOLUTION_DIVISOR = {"full": 1, "half": 2, "quarter": 4}
+
+# Relative reflectance per kind for the (inferred) intensity channel.
+_REFLECTANCE = np.zeros(256, dtype=np.float32)
+_REFLECTANCE[[KIND_GROUND, KIND_STEM, KIND_BRANCH, KIND_FOLIAGE, KIND_UNDERSTOREY]] = (
+    0.30, 0.50, 0.45, 0.60, 0.40)
+
+
+def rot_z(deg: float) -> np.ndarray:
+    """Rotation by ``deg`` counter-clockwise about +z (spec 6.1 / Eq. 6.1)."""
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class ScanPose:
+    """Scanner pose in the world: sensor origin, heading of the levelled frame, and the
+    scanner's tilt (roll, pitch) so that ``p_world = R_z(heading) R_y(pitch) R_x(roll) p_s + t``."""
+
+    x: float
+    y: float
+    z: float
+    heading_deg: float = 0.0
+    tilt_deg: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def origin(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.z], dtype=np.float64)
+
+    def rotation(self) -> np.ndarray:
+        """Scanner frame -> world rotation."""
+        return rot_z(self.heading_deg) @ levelling_rotation(*self.tilt_deg)
+
+
+@dataclass
+class ScanResult:
+    """A simulated scan: the range image (scanner frame, tilt recorded) and per-pixel truth.
+
+    ``true_range_m`` is the noise-free first-return range, ``kind`` the KIND_* label of the
+    returning object (NO_RETURN where none), ``tree_id`` its tree (-1 where none), ``part`` the
+    object id (-1 where none), ``mixed`` True where the first return came from a sub-ray of the
+    beam edge rather than the centre ray (the "mixed" pixels that widen objects).
+    """
+
+    image: RangeImage
+    pose: ScanPose
+    true_range_m: np.ndarray
+    kind: np.ndarray
+    tree_id: np.ndarray
+    part: np.ndarray
+    mixed: np.ndarray
+    n_rays: int
+
+    def world_points(self, noisy: bool = True) -> np.ndarray:
+        """Returned points (rows, cols, 3) in the world frame (NaN where no return)."""
+        img = self.image
+        if not noisy:
+            img = RangeImage(self.true_range_m, img.azimuth_deg, img.elevation_deg, img.tilt_deg)
+        lev = img.xyz
+        return lev @ rot_z(self.pose.heading_deg).T + self.pose.origin
+
+
+class VirtualScanner:
+    """Riegl LMS-Z210-like scanner casting rays into a labelled mesh (spec 1.1).
+
+    ``target`` is a :class:`~forestmap_assets.sim.forest.Forest` or a
+    :class:`~forestmap_assets.sim.forest.SceneMesh`. All beam and geometry numbers are those of
+    spec 1.1 (JP §II-A field of view). (inferred): ``sub_rays`` per mixed-candidate pixel,
+    ``footprint_fraction`` (share of the nominal footprint radius at which a first return still
+    triggers), ``mix_min_step_m`` (how much nearer a sub-ray return must be to replace the
+    centre return) and the ``intensity`` channel (reflectance per kind x |cos incidence|; the
+    thesis uses range only). ``n_cols``/``n_rows`` are full-resolution counts.
+    """
+
+    def __init__(
+        self,
+        target,
+        *,
+        resolution: str = "full",
+        range_sigma_m: float = 0.025,
+        beam_exit_m: float = 0.042,
+        divergence_mrad: float = 3.0,
+        max_range_m: float = 80.0,
+        hfov_deg: float = 330.0,
+        vfov_deg: float = 79.0,
+        n_cols: int = 3000,
+        n_rows: int = 720,
+        azimuth_centre_deg: float = 0.0,
+        elevation_centre_deg: float = 0.0,
+        sub_rays: int = 8,
+        footprint_fraction: float = 1.0,
+        intensity: bool = True,
+        chunk_rays: int = 1_000_000,
+        mix_min_step_m: float = 0.05,
+    ) -> None:
+        if resolution not in RESOLUTION_DIVISOR:
+            raise ValueError(f"resolution: {resolution!r} is not one of {list(RESOLUTION_DIVISOR)}")
+        self.mesh = getattr(target, "mesh", target)
+        div = RESOLUTION_DIVISOR[resolution]
+        self.n_cols, self.n_rows = n_cols // div, n_rows // div
+        self.d_az = hfov_deg / self.n_cols
+        self.d_el = vfov_deg / self.n_rows
+        # pixel centres, symmetric about the centre direction (spec 1.2)
+        self.azimuth_deg = azimuth_centre_deg + (np.arange(self.n_cols) - (self.n_cols - 1) / 2) * (
+            self.d_az)
+        self.elevation_deg = elevation_centre_deg - (
+            np.arange(self.n_rows) - (self.n_rows - 1) / 2) * self.d_el
+        self.range_sigma_m = range_sigma_m
+        self.exit_radius_m = footprint_fraction * beam_exit_m / 2
+        self.half_angle_rad = footprint_fraction * divergence_mrad * 1e-3 / 2
+        self.max_range_m = max_range_m
+        self.sub_rays = sub_rays
+        self.intensity = intensity
+        self.chunk_rays = chunk_rays
+        self.mix_min_step_m = mix_min_step_m
+        self._dirs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    # ---- geometry ------------------------------------------------------------------------
+    def footprint_radius_m(self, r: np.ndarray) -> np.ndarray:
+        """Beam footprint radius at range r: (0.042 + 0.003 r) / 2 (spec 1.1)."""
+        return self.exit_radius_m + self.half_angle_rad * np.asarray(r)
+
+    def _directions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unit beam directions and the two footprint axes, scanner frame, (rows*cols, 3)."""
+        if self._dirs is None:
+            az = np.radians(self.azimuth_deg)[None, :]
+            el = np.radians(self.elevation_deg)[:, None]
+            ca, sa, ce, se = np.cos(az), np.sin(az), np.cos(el), np.sin(el)
+            one = np.ones((self.n_rows, self.n_cols))
+            d = np.stack([ce * ca * one, ce * sa * one, se * one], axis=-1)
+            e1 = np.stack([-sa * one, ca * one, 0 * one], axis=-1)
+            e2 = np.stack([-se * ca * one, -se * sa * one, ce * one], axis=-1)
+            self._dirs = tuple(v.reshape(-1, 3).astype(np.float32) for v in (d, e1, e2))
+        return self._dirs
+
+    def _cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hit distance (inf: none or beyond max range) and triangle id (-1) of rays."""
+        import open3d as o3d
+
+        scene = self.mesh.raycasting_scene()
+        n = len(dirs)
+        t = np.empty(n, dtype=np.float32)
+        prim = np.empty(n, dtype=np.int64)
+        rays = np.empty((min(n, self.chunk_rays), 6), dtype=np.float32)
+        for a in range(0, n, self.chunk_rays):
+            b = min(a + self.chunk_rays, n)
+            rays[: b - a, :3] = origins if origins.shape[0] == 1 else origins[a:b]
+            rays[: b - a, 3:] = dirs[a:b]
+            ans = scene.cast_rays(o3d.core.Tensor(rays[: b - a]))
+            t[a:b] = ans["t_hit"].numpy()
+            prim[a:b] = ans["primitive_ids"].numpy()
+        miss = ~(t <= self.max_range_m)
+        t[miss] = np.inf
+        prim[miss] = -1
+        return t, prim
+
+    def _mixed_candidates(self, r: np.ndarray, part: np.ndarray) -> np.ndarray:
+        """Pixels whose footprint may reach a nearer object (inferred criterion).
+
+        Boundary pixels are pixels with a neighbour on a different object (or hit / no hit).
+        A pixel is a candidate when a boundary pixel within the footprint radius (in pixels,
+        at that boundary pixel's range) is nearer by more than ``mix_min_step_m``.
+        """
+        rows, cols = r.shape
+        k = np.zeros((rows, cols), dtype=np.int32)
+        finite = np.where(np.isfinite(r), r, np.float32(1e9))
+        ang = self.exit_radius_m / finite + self.half_angle_rad
+        kpix = np.minimum(np.ceil(np.degrees(ang) / self.d_el) + 1, 64).astype(np.int32)
+        for axis in (0, 1):
+            diff = part != np.roll(part, -1, axis=axis)
+            if axis == 0:
+                diff[-1, :] = False
+            else:
+                diff[:, -1] = False
+            k = np.maximum(k, np.where(diff | np.roll(diff, 1, axis=axis), kpix, 0))
+        cand = np.zeros((rows, cols), dtype=bool)
+        cos_el = np.cos(np.radians(np.max(np.abs(self.elevation_deg))))
+        for kv in np.unique(k[k > 0]):
+            kc = int(np.ceil(kv * self.d_el / (self.d_az * cos_el)))
+            near = np.where(k == kv, finite, np.float32(np.inf))
+            nearest = ndimage.minimum_filter(near, size=(2 * kv + 1, 2 * kc + 1), mode="nearest")
+            cand |= nearest < finite - self.mix_min_step_m
+        return cand
+
+    # ---- scanning ------------------------------------------------------------------------
+    def scan(self, pose: ScanPose, seed: int | np.random.Generator = 0) -> ScanResult:
+        """Simulate one range image from ``pose`` (noise and sub-ray pattern from ``seed``)."""
+        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        rot = pose.rotation().astype(np.float32)
+        d_s, e1_s, e2_s = self._directions()
+        d = d_s @ rot.T
+        origin = pose.origin
+        t, prim = self._cast(origin[None], d)
+        shape = (self.n_rows, self.n_cols)
+        part_of = np.where(prim >= 0, self.mesh.part[np.maximum(prim, 0)], -1)
+        n_rays = t.size
+        best_r, best_prim = t, prim
+        mixed = np.zeros(t.size, dtype=bool)
+        if self.sub_rays > 0:
+            cand = np.flatnonzero(self._mixed_candidates(t.reshape(shape), part_of.reshape(shape)))
+            k, a, b = self.sub_rays, self.exit_radius_m, self.half_angle_rad
+            phi = (np.arange(k, dtype=np.float32)[None, :]
+                   + rng.random((cand.size, 1), dtype=np.float32)) * np.float32(2 * np.pi / k)
+            off = (np.cos(phi)[..., None] * (e1_s[cand] @ rot.T)[:, None, :]
+                   + np.sin(phi)[..., None] * (e2_s[cand] @ rot.T)[:, None, :]).reshape(-1, 3)
+            # sub-ray k: from the exit circle (radius a) at half-angle b to the beam axis; its
+            # direction d + b*off has norm sqrt(1 + b^2) because off is perpendicular to d
+            sub_o = (origin + a * off).astype(np.float32)
+            sub_d = (np.repeat(d[cand], k, axis=0) + np.float32(b) * off) / np.float32(
+                np.sqrt(1 + b * b))
+            st, sp = self._cast(sub_o, sub_d)
+            n_rays += st.size
+            # distance from the sensor origin to the hit: |a off + t d_k|
+            sr = np.sqrt(a * a + st * st + 2 * a * st * (b / np.sqrt(1 + b * b)))
+            sr, sp = sr.reshape(-1, k), sp.reshape(-1, k)
+            j = np.argmin(sr, axis=1)
+            sub_best = sr[np.arange(cand.size), j]
+            closer = sub_best < best_r[cand] - self.mix_min_step_m
+            sel = cand[closer]
+            best_r[sel] = sub_best[closer]
+            best_prim[sel] = sp[np.flatnonzero(closer), j[closer]]
+            mixed[sel] = True
+        valid = np.isfinite(best_r)
+        true_r = np.where(valid, best_r, np.float32(np.nan))
+        noise = rng.standard_normal(true_r.size, dtype=np.float32) * np.float32(self.range_sigma_m)
+        noisy = true_r + noise
+        noisy[~(noisy > 0)] = np.nan
+        pi = np.maximum(best_prim, 0)
+        kind = np.where(valid, self.mesh.kind[pi], NO_RETURN).astype(np.uint8)
+        tree = np.where(valid, self.mesh.tree[pi], -1).astype(np.int32)
+        part = np.where(valid, self.mesh.part[pi], -1).astype(np.int32)
+        intensity = None
+        if self.intensity:
+            cos_i = np.abs((self.mesh.normals[pi] * d).sum(axis=1))
+            intensity = np.where(valid, _REFLECTANCE[kind] * cos_i, np.nan).astype(np.float32)
+            intensity = np.round(intensity, 3).reshape(shape)  # 1e-3 steps (compresses well)
+        image = RangeImage(noisy.reshape(shape), self.azimuth_deg, self.elevation_deg,
+                           (float(pose.tilt_deg[0]), float(pose.tilt_deg[1])), intensity)
+        return ScanResult(image, pose, true_r.reshape(shape), kind.reshape(shape),
+                          tree.reshape(shape), part.reshape(shape), mixed.reshape(shape),
+                          int(n_rays))
