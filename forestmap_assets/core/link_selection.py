@@ -1,0 +1,291 @@
+"""Testing a new link against the optimal map (Th. 7.1, Table 7.1; spec 8.5) and autonomous
+link selection (beyond the thesis, which chose its 10 forest pairs by hand, spec 8.4 item 3).
+
+The thesis's test: add the hypothesis alone, re-solve, recompute the residuals of all existing
+pairs; if a component "considerably exceeds" 3 sigma, the hypothesis is false. Formalised
+(spec 10.7, inferred): reject if any existing pair's x, y or heading residual exceeds
+``residual_sigmas`` (3) sigma or its z residual exceeds ``z_residual_sigmas`` (8) sigma. The
+test needs a parallel path: a link that adds a sub-map by a single link cannot be checked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+
+from forestmap_assets.core.chaining import OBSERVATION_COLUMNS, SD_COLUMNS, Covariance
+from forestmap_assets.core.optimal_map import MapSolution, solve_network
+from forestmap_assets.core.residuals import COMPONENT_NAMES, normalised_excess
+
+Verdict = Literal["ok", "inconsistent", "untestable"]
+_R = ["rx", "ry", "rz", "rheading"]
+
+
+@dataclass
+class LinkVerdict:
+    """Outcome of testing one link hypothesis (Th. 7.1).
+
+    ``verdict``: ``ok`` (consistent), ``inconsistent`` (rejected) or ``untestable`` (no parallel
+    path); ``reason``: one line naming the pair, component and how many sigma; ``worst_pair``
+    (scan, reference), ``worst_component`` and ``worst_sigmas`` describe the largest violation
+    relative to its threshold among the existing pairs (or the new link when it is the cause);
+    ``solution``: the optimal map with the hypothesis added (None when untestable).
+    """
+
+    scan: str
+    reference: str
+    verdict: Verdict
+    reason: str
+    worst_pair: tuple[str, str] | None = None
+    worst_component: str | None = None
+    worst_sigmas: float = float("nan")
+    solution: MapSolution | None = field(default=None, repr=False)
+
+    @property
+    def accepted(self) -> bool:
+        return self.verdict != "inconsistent"
+
+
+def _limit(component: str, residual_sigmas: float, z_residual_sigmas: float) -> float:
+    return z_residual_sigmas if component == "z" else residual_sigmas
+
+
+def _scan_order(
+    reference: str, frames: Sequence[pd.DataFrame], given: Sequence[str] | None = None
+) -> list[str]:
+    """``reference`` first, then ``given`` scans, then any other scan named in ``frames``."""
+    seen = {str(reference): None}
+    seen.update((str(x), None) for x in (given or ()))
+    for f in frames:
+        for a, b in zip(f["reference"].astype(str), f["scan"].astype(str), strict=True):
+            seen.setdefault(a, None)
+            seen.setdefault(b, None)
+    return list(seen)
+
+
+def check_link_hypothesis(
+    observations: pd.DataFrame,
+    hypothesis: pd.DataFrame | pd.Series,
+    reference: str,
+    *,
+    baseline: MapSolution | None = None,
+    scans: Sequence[str] | None = None,
+    covariance: Covariance = "published",
+    iterate: bool = False,
+    residual_sigmas: float = 3.0,
+    z_residual_sigmas: float = 8.0,
+    check_new_link: bool = True,
+) -> LinkVerdict:
+    """Test of a new relative observation against the map, Th. 7.1 / spec 8.5.
+
+    The hypothesis (one observation row) is added to ``observations`` and the map re-solved
+    with every observation projected by the headings of ``baseline`` (the map before the link,
+    i.e. the previous phase; solved to convergence when not given). The hypothesis is
+    ``inconsistent`` if any existing pair's normalised residual exceeds its threshold (x, y,
+    heading: ``residual_sigmas``; z: ``z_residual_sigmas``, inferred from Table 7.1) or, with
+    ``check_new_link``, the new link's own residual does (beyond the thesis). A link that does
+    not close a loop with the baseline (an end not yet placed) is ``untestable``.
+    ``iterate`` re-projects to convergence after adding the link (inferred; the thesis solves
+    once).
+    """
+    hyp = hypothesis.to_frame().T if isinstance(hypothesis, pd.Series) else hypothesis
+    if len(hyp) != 1:
+        raise ValueError(f"hypothesis must be one observation row, got {len(hyp)}")
+    hyp = hyp.loc[:, list(OBSERVATION_COLUMNS)]
+    obs = observations.loc[:, list(OBSERVATION_COLUMNS)]
+    s, r = str(hyp["scan"].iloc[0]), str(hyp["reference"].iloc[0])
+    scans = _scan_order(reference, [obs, hyp], scans)
+    if baseline is None:
+        baseline = solve_network(obs, scans, covariance=covariance, iterate=True,
+                                 residual_sigmas=residual_sigmas,
+                                 z_residual_sigmas=z_residual_sigmas)
+    placed = set(baseline.poses.loc[baseline.poses["registered"], "scan"])
+    if s not in placed or r not in placed:
+        missing = ", ".join(x for x in (s, r) if x not in placed)
+        return LinkVerdict(s, r, "untestable",
+                           f"link {s}-{r} cannot be checked: sub-map {missing} has no other link "
+                           f"to the map (no parallel path, Th. 7.1)")
+    extended = pd.concat([obs, hyp], ignore_index=True)
+    sol = solve_network(extended, scans, headings=baseline.headings(),
+                        heading_variances=baseline.heading_variances(), covariance=covariance,
+                        iterate=iterate, residual_sigmas=residual_sigmas,
+                        z_residual_sigmas=z_residual_sigmas)
+    is_new = (sol.projected["observation"] == len(obs)).to_numpy()
+    return judge_link(sol.residuals, is_new, s, r, residual_sigmas=residual_sigmas,
+                      z_residual_sigmas=z_residual_sigmas, check_new_link=check_new_link,
+                      solution=sol)
+
+
+def judge_link(
+    residuals: pd.DataFrame,
+    is_new: np.ndarray,
+    scan: str,
+    reference: str,
+    *,
+    residual_sigmas: float = 3.0,
+    z_residual_sigmas: float = 8.0,
+    check_new_link: bool = True,
+    solution: MapSolution | None = None,
+) -> LinkVerdict:
+    """Verdict on link ``scan-reference`` from the residuals (``scan, reference, rx, ry, rz,
+    rheading``) of the map re-solved with it (Th. 7.1, spec 8.5): ``inconsistent`` if an
+    existing pair (``~is_new``) or, with ``check_new_link``, the new link exceeds its threshold;
+    the reason names the worst pair, component and sigma."""
+    is_new = np.asarray(is_new, dtype=bool)
+    r_all = residuals[_R].to_numpy(dtype=float)
+    ratio = np.nan_to_num(normalised_excess(r_all, residual_sigmas, z_residual_sigmas), nan=0.0)
+    old = np.flatnonzero(~is_new)
+    if old.size == 0:
+        return LinkVerdict(scan, reference, "untestable",
+                           f"link {scan}-{reference} cannot be checked: no other pairs", None,
+                           None, float("nan"), solution)
+    row, comp = np.unravel_index(int(np.argmax(ratio[old])), (old.size, 4))
+    k = old[row]
+    worst = (str(residuals["scan"].iloc[k]), str(residuals["reference"].iloc[k]))
+    name = COMPONENT_NAMES[comp]
+    sig = float(abs(r_all[k, comp]))
+    limit = _limit(name, residual_sigmas, z_residual_sigmas)
+    if ratio[k, comp] > 1.0:
+        return LinkVerdict(scan, reference, "inconsistent",
+                           f"adding {scan}-{reference} makes pair {worst[0]}-{worst[1]} "
+                           f"inconsistent: {name} residual {sig:.1f} sigma > {limit:g}",
+                           worst, name, sig, solution)
+    own = np.flatnonzero(is_new)
+    if check_new_link and own.size:
+        oc = int(np.argmax(ratio[own[0]]))
+        oname = COMPONENT_NAMES[oc]
+        osig = float(abs(r_all[own[0], oc]))
+        olimit = _limit(oname, residual_sigmas, z_residual_sigmas)
+        if ratio[own[0], oc] > 1.0:
+            return LinkVerdict(scan, reference, "inconsistent",
+                               f"link {scan}-{reference} itself is inconsistent with the map: "
+                               f"{oname} residual {osig:.1f} sigma > {olimit:g}",
+                               (scan, reference), oname, osig, solution)
+    return LinkVerdict(scan, reference, "ok",
+                       f"link {scan}-{reference} consistent: largest existing residual "
+                       f"{worst[0]}-{worst[1]} {name} {sig:.1f} sigma (limit {limit:g})",
+                       worst, name, sig, solution)
+
+
+@dataclass
+class LinkSelection:
+    """Result of :func:`select_links`.
+
+    ``links``: the candidates with ``status`` (``admitted``, ``rejected`` or ``unreached``),
+    ``role`` (``tree`` / ``loop``), ``step`` (admission order, -1 if not admitted) and
+    ``reason``; ``solution``: the optimal map of the admitted links (poses with ``registered``,
+    covariance, residuals with verdicts); ``unregistered``: scans no admitted link reaches.
+    """
+
+    links: pd.DataFrame
+    solution: MapSolution
+    unregistered: list[str]
+
+    @property
+    def admitted(self) -> pd.DataFrame:
+        return self.links[self.links["status"] == "admitted"]
+
+    @property
+    def rejected(self) -> pd.DataFrame:
+        return self.links[self.links["status"] != "admitted"]
+
+
+def link_confidence(candidates: pd.DataFrame, column: str = "confidence") -> np.ndarray:
+    """Confidence of each candidate: ``column`` if present (e.g. the registration's peak-mass
+    share or score), else ``-sum(log sigma)`` over the four sigmas (inferred: tighter score
+    clouds first)."""
+    if column in candidates:
+        return candidates[column].to_numpy(dtype=float)
+    return -np.log(candidates.loc[:, list(SD_COLUMNS)].to_numpy(dtype=float)).sum(axis=1)
+
+
+def select_links(
+    candidates: pd.DataFrame,
+    reference: str,
+    *,
+    scans: Sequence[str] | None = None,
+    confidence: str = "confidence",
+    covariance: Covariance = "published",
+    iterate: bool = True,
+    residual_sigmas: float = 3.0,
+    z_residual_sigmas: float = 8.0,
+) -> LinkSelection:
+    """Admit registered candidate pairs one at a time, most confident first (beyond the thesis).
+
+    1. Spanning tree (Prim from ``reference``, most confident link first): each step admits the
+       most confident candidate joining a placed sub-map to an unplaced one. Such a link has no
+       parallel path and cannot be checked (Th. 7.1), so it is admitted as ``tree``.
+    2. Loop-closing links, most confident first: each is tested with
+       :func:`check_link_hypothesis` against the map of all links admitted so far (including the
+       new link's own residual) and admitted (``loop``) or rejected with the reason.
+    3. Candidates touching a sub-map that no admitted link reaches are ``unreached``; such a
+       sub-map is reported in ``unregistered`` (not placed).
+
+    ``iterate`` solves each map to convergence of the projection headings (inferred).
+    """
+    cand = candidates.reset_index(drop=True)
+    conf = link_confidence(cand, confidence)
+    rank = np.lexsort((np.arange(len(cand)), -conf))  # most confident first, stable
+    s_all, r_all = cand["scan"].astype(str).to_numpy(), cand["reference"].astype(str).to_numpy()
+    scans = _scan_order(reference, [cand], scans)
+    status = np.full(len(cand), "unreached", dtype=object)
+    role = np.full(len(cand), "", dtype=object)
+    reason = np.full(len(cand), "", dtype=object)
+    step = np.full(len(cand), -1)
+    pos = {x: k for k, x in enumerate(scans)}
+    si = np.array([pos[x] for x in s_all], dtype=int)
+    ri = np.array([pos[x] for x in r_all], dtype=int)
+    on = np.zeros(len(scans), dtype=bool)
+    on[pos[str(reference)]] = True
+    n_steps = 0
+    while True:  # 1. spanning tree
+        joins = (on[si] != on[ri])[rank] & (status[rank] == "unreached")
+        if not joins.any():
+            break
+        m = rank[int(np.argmax(joins))]
+        new = si[m] if not on[si[m]] else ri[m]
+        on[new] = True
+        status[m], role[m], step[m] = "admitted", "tree", n_steps
+        reason[m] = (f"spanning-tree link placing {scans[new]}: no parallel path, cannot be "
+                     f"checked (Th. 7.1)")
+        n_steps += 1
+    placed = {scans[k] for k in np.flatnonzero(on)}
+    admitted = np.flatnonzero(status == "admitted")
+    current = solve_network(cand.iloc[admitted], scans, covariance=covariance, iterate=iterate,
+                            residual_sigmas=residual_sigmas, z_residual_sigmas=z_residual_sigmas)
+    for m in rank:  # 2. loop-closing links
+        if status[m] != "unreached" or s_all[m] not in placed or r_all[m] not in placed:
+            continue
+        if s_all[m] == r_all[m]:
+            status[m], reason[m] = "rejected", "scan and reference are the same sub-map"
+            continue
+        verdict = check_link_hypothesis(
+            cand.iloc[admitted], cand.iloc[[m]], reference, baseline=current, scans=scans,
+            covariance=covariance, iterate=iterate, residual_sigmas=residual_sigmas,
+            z_residual_sigmas=z_residual_sigmas,
+        )
+        reason[m] = verdict.reason
+        if verdict.verdict == "inconsistent":
+            status[m] = "rejected"
+            continue
+        status[m], role[m], step[m] = "admitted", "loop", n_steps
+        n_steps += 1
+        admitted = np.flatnonzero(status == "admitted")
+        current = solve_network(cand.iloc[admitted], scans, headings=current.headings(),
+                                heading_variances=current.heading_variances(),
+                                covariance=covariance, iterate=iterate,
+                                residual_sigmas=residual_sigmas,
+                                z_residual_sigmas=z_residual_sigmas)
+    unreached = status == "unreached"
+    for m in np.flatnonzero(unreached):  # 3. links of sub-maps the network does not reach
+        away = [x for x in (s_all[m], r_all[m]) if x not in placed]
+        reason[m] = f"sub-map {', '.join(away)} not reached by any admitted link"
+    links = cand.copy()
+    links["confidence"] = conf
+    links["status"], links["role"], links["step"], links["reason"] = status, role, step, reason
+    unregistered = [x for x in scans if x not in placed]
+    return LinkSelection(links, current, unregistered)
