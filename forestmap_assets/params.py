@@ -77,6 +77,16 @@ class LineParams(_Stage):
     max_inclination_deg: float = 5.0
     enabled: bool = True
     max_range_m: float = 40.0
+    # (inferred) occupancy-grid and border details, see core/lines.py
+    max_beams: int = 100_000
+    step_fraction: float = 0.5
+    hit_margin_m: float | None = None
+    min_wall_extent_m: float = 0.5
+    top_tolerance_m: float | None = None
+    wall_depth_cells: int = 2
+    border_xy: Literal["hits", "edge", "centre"] = "hits"
+    link_cells: int = 2
+    split_at_outliers: bool = True
 
 
 class ElevationParams(_Stage):
@@ -85,6 +95,9 @@ class ElevationParams(_Stage):
     cell_m: float = 0.1
     mode: Literal["lowest", "highest"] = "lowest"
     render_cell_m: float = 0.6
+    n_lowest: int = 5
+    supersample: int = 2  # (inferred) merge without holes after rotation
+    max_distance_m: float | None = None
 
 
 class SubmapParams(_Stage):
@@ -112,6 +125,11 @@ class MappingParams(_Stage):
     z_residual_sigmas: float = 8.0
     method: Literal["optimal", "chain"] = "optimal"
     covariance: Literal["published", "full"] = "published"
+    iterate: bool = False  # re-project to convergence within each phase (thesis: once)
+    linearisation: Literal["projection", "gauss_newton"] = "projection"
+    max_iterations: int = 50
+    check_new_link: bool = True
+    chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
 
 
 class Params(BaseModel):
