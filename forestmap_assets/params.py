@@ -116,6 +116,15 @@ class RegistrationParams(_Stage):
     xy_m: float = 5.0
     z_m: float = 1.25
     heading_deg: float = 60.0
+    method: Literal["fast", "thesis"] = "fast"
+    weight: Literal["linear", "exp"] = "linear"  # cell-cloud weight of JP eq. 6 (inferred)
+    s_floor: float | None = None
+    adjacency: Literal[8, 80] = 80
+    hypothesis_separation_m: float = 0.3
+    # candidate pairs (spec 6.4 box; inferred selection rules)
+    k_nearest: int = 4
+    max_distance_m: float = 30.0
+    max_xy_m: float = 20.0
 
 
 class MappingParams(_Stage):

@@ -1,0 +1,154 @@
+"""Branch-and-bound registration (spec 6.3-6.7, 13.2-13.7)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from forestmap_assets.core.registration import (
+    SearchLattice,
+    _KdEvaluator,
+    exhaustive_search,
+    register_pair,
+)
+from forestmap_assets.core.score import ScoreModel
+from forestmap_assets.core.score_field import ReferenceField
+from forestmap_assets.core.stem_layouts import stem_pair
+from forestmap_assets.core.submaps import build_submap, submap_points
+from forestmap_assets.params import RegistrationParams
+
+
+def test_score_constants():
+    m = ScoreModel(0.035, 0.3, 0.3)
+    got = m.log_p(np.array([0.0, 0.035, 0.07, 0.3, np.inf]))
+    np.testing.assert_allclose(got, [1.2295, 0.7295, -0.7705, -34.30, -34.66], atol=6e-3)
+    assert np.isclose(m.ln_p0, 1.2295, atol=1e-4) and np.isclose(m.ln_k1, -34.657, atol=1e-3)
+    assert m.log_p(m.cap_m) == m.ln_k1 and m.log_p(m.cap_m * 0.9) > m.ln_k1
+
+
+def _rotz(h):
+    c, s = np.cos(h), np.sin(h)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def test_bounds_dominate_scores_inside_cells():
+    """Spec 13.3: Bound(C) >= score anywhere in C, for the plain and the per-axis bound."""
+    rng = np.random.default_rng(0)
+    ref = rng.uniform(-3, 3, (300, 3))
+    scan = ref[:150] + rng.normal(0, 0.02, (150, 3))
+    model = ScoreModel()
+    field = ReferenceField(ref, model)
+    kd = _KdEvaluator(ref, model)
+    d_xy = np.hypot(scan[:, 0], scan[:, 1])
+    for _ in range(12):
+        c = np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 0.02)]
+        e = rng.uniform(0.005, 0.08, 4) * np.array([1, 1, 1, 0.3])
+        rot = 2 * d_xy * np.sin(e[3] / 2)
+        delta = np.linalg.norm(e[:3]) + rot
+        _, b_fast = field.evaluate(c[None], scan, delta, rot=rot, e_box=e[:3])
+        _, b_kd = kd(c[None], scan, delta)
+        inside = c + rng.uniform(-1, 1, (300, 4)) * e
+        s_in, _ = kd(inside, scan, np.zeros(len(scan)), bound=False)
+        assert s_in.max() <= b_fast[0] + 1e-9 and s_in.max() <= b_kd[0] + 1e-9
+        s_fast, _ = field.evaluate(inside[:20], scan, np.zeros(len(scan)), bound=False)
+        np.testing.assert_allclose(s_fast, s_in[:20], rtol=1e-10)  # exact scores
+
+
+def _small_problem(rng, kind):
+    if kind == "symmetric":  # a square of four vertical stems: 90-degree symmetric
+        g = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], float) * 1.5
+        z = np.arange(0, 1.0, 0.05)
+        ref = np.vstack([np.column_stack([np.full_like(z, x), np.full_like(z, y), z]) for x, y in g])
+    else:
+        ref = np.vstack([np.column_stack([np.full(15, x), np.full(15, y), np.arange(15) * 0.05])
+                         for x, y in rng.uniform(-3, 3, (5, 2))])
+    truth = np.array([0.07, -0.05, 0.03, np.radians(4.0)])
+    scan = (ref - truth[:3]) @ _rotz(-truth[3]).T + rng.normal(0, 0.01, ref.shape)
+    if kind == "outliers":
+        scan = np.vstack([scan[::2], rng.uniform(-3, 3, (25, 3))])
+    return scan, ref
+
+
+@pytest.mark.parametrize("kind", ["plain", "outliers", "symmetric"])
+def test_branch_and_bound_equals_exhaustive(kind):
+    """Spec 13.4: the search returns the final-lattice maximum, for both evaluators."""
+    rng = np.random.default_rng({"plain": 1, "outliers": 2, "symmetric": 3}[kind])
+    scan, ref = _small_problem(rng, kind)
+    params = RegistrationParams(final_cell_m=0.05)
+    box = (0.2, 0.2, 0.1, 10.0) if kind != "symmetric" else (0.2, 0.2, 0.1, 100.0)
+    centre = (0.0, 0.0, 0.0, 0.0)
+    poses, scores = exhaustive_search(scan, ref, centre, box, params)
+    for method in ("fast", "thesis"):
+        r = register_pair(scan, ref, centre, box, params, method=method)
+        assert r.ok
+        assert np.isclose(r.peak_score, scores.max(), rtol=1e-10, atol=1e-9)
+        winners = poses[scores >= scores.max() - 1e-6]
+        assert np.min(np.abs(winners - np.array(r.peak)).sum(1)) < 1e-6
+
+
+def _stem_points(seed, **kw):
+    pair = stem_pair(seed=seed, **kw)
+    pa = submap_points(build_submap(pair.cylinders_a, None))
+    pb = submap_points(build_submap(pair.cylinders_b, None))
+    return pa, pb, np.array(pair.truth)
+
+
+def _err(result, truth):
+    e = np.array(result.peak) - truth
+    e[3] = (e[3] + 180) % 360 - 180
+    return e
+
+
+def test_stem_layout_from_poor_prior():
+    """Spec 13.6: prior off by 4.5 m and 32 deg in a +-5 m, +-1.25 m, +-60 deg box."""
+    pa, pb, truth = _stem_points(1)
+    off = np.array([4.5 * np.cos(0.7), 4.5 * np.sin(0.7), 0.3, 32.0])
+    r = register_pair(pb, pa, truth + off, (5.0, 5.0, 1.25, 60.0), RegistrationParams())
+    e = _err(r, truth)
+    assert r.ok and np.hypot(e[0], e[1]) < 0.02 and abs(e[3]) < 0.2 and abs(e[2]) < 0.3
+    assert r.sigma[2] > r.sigma[0]  # vertical stems constrain z weakly (spec 6.5)
+    assert set(r.levels.level) == set(range(r.levels.level.max() + 1))
+    final = r.levels[r.levels.level == r.levels.level.max()]
+    assert len(final) >= r.cloud_cells and (final.bound >= r.peak_score - 1e-6).all()
+    assert 0 < r.peak_mass_share <= 1
+
+
+def test_stem_layout_without_prior():
+    """No prior heading: the full circle (DESIGN.md 2)."""
+    pa, pb, truth = _stem_points(4, n_trees=30, half_extent_m=9.0, offset=(2.0, 1.5, 0.1, 150.0),
+                                 max_range_m=10.0)
+    r = register_pair(pb, pa, (0, 0, 0, 0), (4.0, 4.0, 0.5, 180.0), RegistrationParams())
+    e = _err(r, truth)
+    assert r.ok and np.hypot(e[0], e[1]) < 0.02 and abs(e[3]) < 0.2
+
+
+def test_ambiguous_row_of_stems_gives_hypotheses():
+    """Spec 13.7: equally spaced stems -> shifted alignments survive as secondary hypotheses."""
+    z = np.arange(0.0, 1.5, 0.05)
+    row = lambda xs: np.vstack([np.column_stack([np.full_like(z, x), np.zeros_like(z), z])  # noqa: E731
+                                for x in xs])
+    ref = row(np.arange(-9.0, 9.1, 3.0))
+    scan = row([-3.0, 0.0, 3.0])
+    r = register_pair(scan, ref, (0.0, 0.0, 0.0, 0.0), (4.0, 1.0, 0.3, 10.0), RegistrationParams())
+    assert r.ok and len(r.hypotheses) >= 2
+    peaks = np.sort(np.r_[r.peak[0], r.hypotheses.peak_dx.to_numpy()[:2]])
+    np.testing.assert_allclose(peaks, [-3.0, 0.0, 3.0], atol=0.05)
+    assert np.allclose(r.hypotheses.peak_score[:2], r.peak_score)
+    assert r.peak_mass_share < 0.4
+
+
+def test_empty_submaps_fail_cleanly():
+    pts = np.random.default_rng(0).uniform(-1, 1, (20, 3))
+    for scan, ref in ((np.empty((0, 3)), pts), (pts, np.empty((0, 3)))):
+        r = register_pair(scan, ref, (0, 0, 0, 0), (1, 1, 1, 10))
+        assert r.status == "failed" and "no registration points" in r.reason
+        assert np.isnan(r.peak_score)
+
+
+def test_lattice_levels_halve_to_final_cell():
+    """Spec 13.5: +-5 m halves to 0.0195 m; +-180 deg matches the metric cell at d_bar."""
+    lat = SearchLattice.build((0, 0, 0, 0), (5.0, 5.0, 1.25, 180.0), 0.02, 6.5)
+    np.testing.assert_allclose(lat.step[:3], [10 / 512, 10 / 512, 2.5 / 128])
+    assert lat.wrap and lat.n[3] * lat.step[3] == pytest.approx(2 * np.pi)
+    assert lat.step[3] * 6.5 <= 0.02
+    assert len(lat.schedule()) == int(np.log2(lat.n).sum())
