@@ -90,7 +90,8 @@ def cmd_simulate(args) -> int:
         tilt_deg=args.tilt,
         progress=lambda m: _say(args, m),
     )
-    print(f"campaign written to {out}")
+    if args.quiet:
+        print(out)
     return 0
 
 

@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dagster import AssetKey, DagsterInstance, Definitions, materialize
-from dagster._core.definitions.observe import observe
 from dagster._core.asset_graph_view.asset_graph_view import AssetGraphView, TemporalContext
 from dagster._core.definitions.data_version import CachingStaleStatusResolver, StaleStatus
+from dagster._core.definitions.observe import observe
 from dagster._time import get_current_datetime
 
 from .assets.common import PIPELINE, asset_key, scan_partitions
@@ -28,7 +28,7 @@ from .io.store import forestmap_home
 Progress = Callable[[str], None]
 
 
-QUIET = {"loggers": {"console": {"config": {"log_level": "WARNING"}}}}
+QUIET = {"loggers": {"console": {"config": {"log_level": "CRITICAL"}}}}
 
 
 def get_instance() -> DagsterInstance:
@@ -146,6 +146,19 @@ def _materialize_scan(folder: str, scan_id: str, stages: list[str], store_url: s
     return False, _failure_reason(result)
 
 
+def _materialize_campaign_stage(defs: Definitions, campaign: Campaign, instance: DagsterInstance, stage: str) -> tuple[bool, str]:
+    result = materialize(
+        list(defs.assets),
+        instance=instance,
+        selection=[asset_key(campaign, stage)],
+        resources=defs.resources,
+        run_config=QUIET,
+        raise_on_error=False,
+        tags={"forestmap/campaign": campaign.key},
+    )
+    return (True, "") if result.success else (False, _failure_reason(result))
+
+
 def _failure_reason(result) -> str:
     for event in result.all_events:
         if event.is_step_failure:
@@ -210,6 +223,23 @@ def run_campaign(
             done(sid, ok, reason, time.perf_counter() - t0)
     else:
         raise ValueError(f"--executor: {executor!r} is not available (in_process, multiprocess)")
+
+    # campaign-level stages, in pipeline order, each only if it is missing or stale now
+    for stage, granularity in PIPELINE:
+        if granularity != "campaign" or stage in summary.not_built:
+            continue
+        state = {s.stage: s for s in stage_states(defs, campaign, instance)}[stage]
+        if state.state == "fresh":
+            continue
+        t0 = time.perf_counter()
+        progress(f"  {stage} ...")
+        ok, reason = _materialize_campaign_stage(defs, campaign, instance, stage)
+        if not ok:
+            summary.failures.append((stage, None, reason))
+            progress(f"  {stage}: FAILED {reason}")
+            break
+        summary.ran.append((stage, None))
+        progress(f"  {stage} ({time.perf_counter() - t0:.1f} s)")
 
     summary.seconds = time.perf_counter() - start
     return summary

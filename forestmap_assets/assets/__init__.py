@@ -12,12 +12,14 @@ import warnings
 from dagster import BetaWarning, PreviewWarning
 
 from ..campaign import Campaign
+from .features import feature_assets
 from .ingest import ingest_assets
+from .mapping import mapping_assets
 
 warnings.filterwarnings("ignore", category=BetaWarning)
 warnings.filterwarnings("ignore", category=PreviewWarning)
 
-STAGE_BUILDERS = [ingest_assets]
+STAGE_BUILDERS = [ingest_assets, feature_assets, mapping_assets]
 
 
 def campaign_assets(campaign: Campaign) -> list:

@@ -15,7 +15,14 @@ from dagster import (
 
 from ..campaign import Campaign
 from ..core.range_image import RangeImage
-from .common import asset_key, code_version, data_version, png_metadata, range_image_figure, scan_partitions
+from .common import (
+    asset_key,
+    code_version,
+    data_version,
+    png_metadata,
+    range_image_figure,
+    scan_partitions,
+)
 
 
 def read_campaign_scan(campaign: Campaign, scan_id: str) -> RangeImage:

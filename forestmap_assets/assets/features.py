@@ -1,0 +1,168 @@
+"""Per-scan feature assets (thesis ch. 4, spec 2-5, 9): thin wrappers around ``core``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from dagster import AssetIn, MetadataValue, Output, asset
+
+from ..campaign import Campaign
+from ..core.range_image import RangeImage
+from .common import (
+    asset_key,
+    code_version,
+    data_version,
+    png_metadata,
+    range_image_figure,
+    scan_partitions,
+)
+
+
+def _image(table) -> RangeImage:
+    return RangeImage.from_table(table)
+
+
+def _counts(series: pd.Series) -> dict[str, int]:
+    return {str(k) if k else "valid": int(v) for k, v in series.value_counts().items()}
+
+
+def feature_assets(campaign: Campaign) -> list:
+    from ..core.circles import fit_circle_models
+    from ..core.cylinders import assemble_cylinders
+    from ..core.elevation import elevation_grid
+    from ..core.lines import extract_line_segments
+    from ..core.segments import segment_mask, segment_scan_lines
+    from ..core.submaps import build_submap
+
+    parts = scan_partitions(campaign)
+    params = campaign.params
+
+    def key(stage: str):
+        return asset_key(campaign, stage)
+
+    def ins(*stages: str) -> dict[str, AssetIn]:
+        return {s: AssetIn(key=key(s)) for s in stages}
+
+    @asset(
+        key=key("segments"),
+        ins=ins("range_images"),
+        partitions_def=parts,
+        group_name="features",
+        code_version=code_version(campaign, "segments"),
+        description="Scan-line segments: blocking-object max filter, range-step runs, width "
+        "window, T_out outlier gate, vertical chains (thesis 4.6.1; spec 2).",
+    )
+    def segments(context, range_images):
+        image = _image(range_images)
+        table = segment_scan_lines(image, params.segmentation)
+        meta = {
+            "segments": len(table),
+            "chains": int(table["chain_id"].nunique()) if len(table) else 0,
+            "inlier_points": int(table["n_inliers"].sum()) if len(table) else 0,
+            "segment_mask": png_metadata(
+                range_image_figure(image.range_m, f"segments, scan {context.partition_key}", segment_mask(image, table))
+            ),
+        }
+        return Output(table, metadata=meta, data_version=data_version(table))
+
+    @asset(
+        key=key("circle_models"),
+        ins=ins("range_images", "segments"),
+        partitions_def=parts,
+        group_name="features",
+        code_version=code_version(campaign, "circle_models"),
+        description="Circle models of every iteration's final state: projection plane through "
+        "the sensor, linear least-squares circle (JP eqs. 1-4), robust refit, symmetry test, "
+        "axis re-estimation (thesis 4.6.2-4.6.3; spec 3).",
+    )
+    def circle_models(context, range_images, segments):
+        image = _image(range_images)
+        table = fit_circle_models(image, segments, params.circles, params.segmentation)
+        meta: dict = {"circles": len(table)}
+        if len(table):
+            last = table[table["iteration"] == table["iteration"].max()]
+            meta.update(
+                iterations=int(table["iteration"].max()) + 1,
+                valid_circles=int(last["valid"].sum()),
+                rejected_circles=int((~last["valid"]).sum()),
+                rejected_by=MetadataValue.json(_counts(last.loc[~last["valid"], "reject_reason"])),
+                rejected_share=round(float((~last["valid"]).mean()), 4),
+            )
+            valid_ids = set(last.loc[last["valid"], "segment_id"])
+            mask = segment_mask(image, segments[segments["segment_id"].isin(valid_ids)])
+            meta["circle_mask"] = png_metadata(
+                range_image_figure(image.range_m, f"valid circles, scan {context.partition_key}", mask)
+            )
+        else:
+            meta.update(valid_circles=0, rejected_circles=0, rejected_share=0.0)
+        return Output(table, metadata=meta, data_version=data_version(table))
+
+    @asset(
+        key=key("cylinder_segments"),
+        ins=ins("circle_models"),
+        partitions_def=parts,
+        group_name="features",
+        code_version=code_version(campaign, "cylinder_segments"),
+        description="Cylinder (truncated-cone) segments chained from valid circles, broken at "
+        "the curvature threshold and gaps, filtered by length (thesis 4.6.3; spec 4).",
+    )
+    def cylinder_segments(context, circle_models):
+        final = circle_models[circle_models["iteration"] == circle_models["iteration"].max()] if len(circle_models) else circle_models
+        table = assemble_cylinders(final, params.cylinders)
+        meta = {
+            "cylinders": len(table),
+            "total_length_m": round(float(table["length_m"].sum()), 2) if len(table) else 0.0,
+            "median_radius_m": round(float(table["radius_m"].median()), 4) if len(table) else 0.0,
+        }
+        return Output(table, metadata=meta, data_version=data_version(table))
+
+    @asset(
+        key=key("line_segments"),
+        ins=ins("range_images"),
+        partitions_def=parts,
+        group_name="features",
+        code_version=code_version(campaign, "line_segments"),
+        description="Horizontal wall/ceiling border lines from the free/unknown-occupied "
+        "border of a 3-D occupancy grid (thesis 4.7; spec 5). Empty in forests by default.",
+    )
+    def line_segments(context, range_images):
+        lp = params.lines
+        extra = ("max_beams", "step_fraction", "hit_margin_m", "min_wall_extent_m", "top_tolerance_m",
+                 "wall_depth_cells", "border_xy", "link_cells", "split_at_outliers")
+        table = extract_line_segments(_image(range_images), lp, **{k: getattr(lp, k) for k in extra})
+        meta = {"lines": len(table), "total_length_m": round(float(table["length_m"].sum()), 2) if len(table) else 0.0}
+        return Output(table, metadata=meta, data_version=data_version(table))
+
+    @asset(
+        key=key("elevation_maps"),
+        ins=ins("range_images"),
+        partitions_def=parts,
+        group_name="features",
+        code_version=code_version(campaign, "elevation_maps"),
+        description="Lowest (or highest) beam hit per 0.1 m cell in the levelled scan frame "
+        "(thesis 6.x; spec 9).",
+    )
+    def elevation_maps(context, range_images):
+        table = elevation_grid(_image(range_images), params.elevation, max_distance_m=params.elevation.max_distance_m)
+        meta = {"cells": len(table)}
+        if len(table):
+            meta.update(z_min=float(np.min(table["z"])), z_max=float(np.max(table["z"])))
+        return Output(table, metadata=meta, data_version=data_version(table))
+
+    @asset(
+        key=key("submaps"),
+        ins=ins("cylinder_segments", "line_segments"),
+        partitions_def=parts,
+        group_name="registration",
+        code_version=code_version(campaign, "submaps"),
+        description="Registration points sampled every 0.05 m along cylinder centre lines and "
+        "wall lines, levelled scan frame (thesis 5.4; spec 6.2).",
+    )
+    def submaps(context, cylinder_segments, line_segments):
+        table = build_submap(cylinder_segments, line_segments, params.submaps.spacing_m)
+        meta = {"points": len(table)}
+        if len(table):
+            meta["mean_horizontal_distance_m"] = round(float(np.hypot(table["x"], table["y"]).mean()), 2)
+        return Output(table, metadata=meta, data_version=data_version(table))
+
+    return [segments, circle_models, cylinder_segments, line_segments, elevation_maps, submaps]

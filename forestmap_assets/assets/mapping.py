@@ -1,0 +1,227 @@
+"""Campaign-level assets: candidate pairs, registrations, optimal map, residual checks,
+integrated map and tree list (thesis ch. 5-7; spec 6-9)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from dagster import (
+    AssetCheckResult,
+    AssetCheckSeverity,
+    AssetCheckSpec,
+    AssetIn,
+    MetadataValue,
+    Output,
+    asset,
+)
+
+from ..campaign import Campaign
+from .common import asset_key, code_version, data_version
+
+POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
+
+
+def _all_scans(stage_key) -> AssetIn:
+    """All scan partitions of a per-scan asset; a scan whose partition failed is left out."""
+    return AssetIn(key=stage_key, metadata={"allow_missing_partitions": True})
+
+
+def _md_table(df: pd.DataFrame, floatfmt: str = ".3f") -> MetadataValue:
+    if df.empty:
+        return MetadataValue.md("_empty_")
+    cols = list(df.columns)
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for row in df.itertuples(index=False):
+        lines.append("| " + " | ".join(format(v, floatfmt) if isinstance(v, float) else str(v) for v in row) + " |")
+    return MetadataValue.md("\n".join(lines))
+
+
+def poses_table(campaign: Campaign, solution_poses: pd.DataFrame | None) -> pd.DataFrame:
+    """``poses.csv`` rows for every scan of the campaign; unplaced scans have empty poses."""
+    from ..core.geometry import wrap_deg
+
+    out = pd.DataFrame({"scan": campaign.scan_ids})
+    if solution_poses is not None and len(solution_poses):
+        placed = solution_poses[solution_poses["registered"].astype(bool)].drop(columns=["registered"])
+        out = out.merge(placed, on="scan", how="left")
+    for c in POSE_COLUMNS[1:-1]:
+        if c not in out:
+            out[c] = np.nan
+    out["registered"] = out["x"].notna()
+    out["heading_deg"] = np.where(out["registered"], wrap_deg(out["heading_deg"].fillna(0.0).to_numpy(float)), np.nan)
+    return out[POSE_COLUMNS]
+
+
+def mapping_assets(campaign: Campaign) -> list:
+    from ..core.candidates import candidate_pairs as make_candidates
+    from ..core.elevation import merge_elevation
+    from ..core.link_selection import select_links
+    from ..core.pair_registrations import register_candidates
+    from ..core.submaps import submap_reach
+    from ..core.trees import cylinders_to_global, merge_trees
+    from ..exports import elevation_from_table, elevation_to_table
+
+    params = campaign.params
+    reference = campaign.scan_ids[0]
+
+    def key(stage: str):
+        return asset_key(campaign, stage)
+
+    @asset(
+        key=key("candidate_pairs"),
+        ins={"submaps": _all_scans(key("submaps"))},
+        group_name="registration",
+        code_version=code_version(campaign, "candidate_pairs"),
+        description="Which sub-map pairs to register and their search boxes: the campaign's "
+        "a priori pairs, else pairs of overlapping a priori poses, else every pair with a "
+        "no-prior box (full heading circle, xy box of the scans' reach) (thesis 5.4; spec 6.4).",
+    )
+    def candidate_pairs(context, submaps):
+        submaps = submaps or {}
+        reg = params.registration
+        pairs = [(p.scan, p.reference, p.a_priori) for p in campaign.pairs] or None
+        priors = {s.id: s.a_priori for s in campaign.scans if s.a_priori is not None}
+        a_priori = priors if len(priors) == len(campaign.scans) and not pairs else None
+        reach = {sid: submap_reach(df) for sid, df in submaps.items()}
+        table = make_candidates(
+            list(submaps), pairs=[p for p in pairs if p[0] in submaps and p[1] in submaps] if pairs else None,
+            a_priori=a_priori, search=(reg.xy_m, reg.z_m, reg.heading_deg), reach=reach,
+            k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
+        )
+        meta = {"pairs": len(table), "source": str(table["source"].iloc[0]) if len(table) else "none",
+                "table": _md_table(table)}
+        return Output(table, metadata=meta, data_version=data_version(table))
+
+    @asset(
+        key=key("pairwise_registrations"),
+        ins={"candidate_pairs": AssetIn(key=key("candidate_pairs")), "submaps": _all_scans(key("submaps"))},
+        group_name="registration",
+        code_version=code_version(campaign, "pairwise_registrations"),
+        description="Globally optimal 4-DoF registration of every candidate pair by branch and "
+        "bound over Olson's score: best cell, score-weighted cloud centre and sigma (JP eq. 6), "
+        "every level's surviving cells, secondary hypotheses (thesis 5.3.3; spec 6.3-6.7).",
+    )
+    def pairwise_registrations(context, candidate_pairs, submaps):
+        bundle = register_candidates(candidate_pairs, submaps or {}, params.registration,
+                                     progress=context.log.info)
+        regs = bundle["registrations"]
+        counts = regs["status"].value_counts().to_dict()
+        meta = {
+            "pairs": len(regs),
+            "accepted": int(counts.get("accepted", 0)),
+            "rejected": int(counts.get("rejected", 0)),
+            "failed": int(counts.get("failed", 0)),
+            "median_seconds": float(regs["seconds"].median()) if len(regs) else 0.0,
+            "registrations": _md_table(regs[["scan", "reference", "dx", "dy", "dz", "dheading_deg", "sd_x", "sd_heading_deg", "status", "reason"]]),
+        }
+        return Output(bundle, metadata=meta, data_version=data_version(bundle))
+
+    @asset(
+        key=key("optimal_map"),
+        ins={"pairwise_registrations": AssetIn(key=key("pairwise_registrations"))},
+        group_name="map",
+        code_version=code_version(campaign, "optimal_map"),
+        description="Global poses and covariances: links admitted one at a time (most confident "
+        "first, spanning tree then loop closures tested by the residual rule), Lu-Milios "
+        "minimum-variance estimate (thesis 3.2.2, 6.4, 7.1; spec 8).",
+    )
+    def optimal_map(context, pairwise_registrations):
+        regs = pairwise_registrations["registrations"]
+        accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
+        mp = params.mapping
+        if accepted.empty:
+            poses = poses_table(campaign, None)
+            links = accepted.assign(status=pd.Series(dtype=object), role=pd.Series(dtype=object), step=pd.Series(dtype=int))
+            residuals = pd.DataFrame(columns=["scan", "reference", "ex", "ey", "ez", "eheading_deg", "rx", "ry", "rz", "rheading", "verdict"])
+        else:
+            sel = select_links(accepted, reference, scans=campaign.scan_ids, confidence="confidence",
+                               covariance=mp.covariance, iterate=mp.iterate,
+                               residual_sigmas=mp.residual_sigmas, z_residual_sigmas=mp.z_residual_sigmas)
+            poses = poses_table(campaign, sel.solution.poses)
+            links = sel.links
+            residuals = sel.solution.residuals
+        bundle = {"poses": poses, "links": links, "residuals": residuals}
+        meta = {
+            "registered": int(poses["registered"].sum()),
+            "unregistered": MetadataValue.json(poses.loc[~poses["registered"], "scan"].tolist()),
+            "admitted_links": int((links["status"] == "admitted").sum()) if len(links) else 0,
+            "rejected_links": int((links["status"] == "rejected").sum()) if len(links) else 0,
+            "poses": _md_table(poses),
+        }
+        return Output(bundle, metadata=meta, data_version=data_version(bundle))
+
+    @asset(
+        key=key("residual_checks"),
+        ins={"optimal_map": AssetIn(key=key("optimal_map"))},
+        group_name="map",
+        code_version=code_version(campaign, "residual_checks"),
+        description="Residuals of eq. (11) of every admitted observation, normalised by its "
+        "sigma, with verdicts ok / inconsistent (thesis 6.4, 7.1; spec 8.5).",
+        check_specs=[
+            AssetCheckSpec("admitted_links_consistent", asset=key("residual_checks"),
+                           description="Every admitted observation passes the residual test (3 sigma x/y/heading, 8 sigma z)."),
+            AssetCheckSpec("every_scan_registered", asset=key("residual_checks"),
+                           description="Every scan is placed by an admitted link, or explicitly reported as not registered."),
+        ],
+    )
+    def residual_checks(context, optimal_map):
+        residuals = optimal_map["residuals"].reset_index(drop=True)
+        poses = optimal_map["poses"]
+        bad = residuals[residuals["verdict"] != "ok"] if len(residuals) else residuals
+        unplaced = poses.loc[~poses["registered"].astype(bool), "scan"].tolist()
+        yield Output(residuals, metadata={"observations": len(residuals), "inconsistent": len(bad),
+                                          "residuals": _md_table(residuals)},
+                     data_version=data_version(residuals))
+        yield AssetCheckResult(
+            check_name="admitted_links_consistent", passed=bad.empty, severity=AssetCheckSeverity.ERROR,
+            metadata={"inconsistent": MetadataValue.json([f"{r.scan}{r.reference}" for r in bad.itertuples()])},
+        )
+        yield AssetCheckResult(
+            check_name="every_scan_registered", passed=not unplaced, severity=AssetCheckSeverity.WARN,
+            metadata={"not_registered": MetadataValue.json(unplaced)},
+        )
+
+    @asset(
+        key=key("integrated_map"),
+        ins={
+            "optimal_map": AssetIn(key=key("optimal_map")),
+            "cylinder_segments": _all_scans(key("cylinder_segments")),
+            "elevation_maps": _all_scans(key("elevation_maps")),
+        },
+        group_name="map",
+        code_version=code_version(campaign, "integrated_map"),
+        description="All cylinder segments in the global frame and the merged lowest-hit "
+        "elevation map of the registered scans (thesis 6.4, Figs 6.11-6.13; spec 9).",
+    )
+    def integrated_map(context, optimal_map, cylinder_segments, elevation_maps):
+        poses = optimal_map["poses"]
+        placed = poses[poses["registered"].astype(bool)]
+        pose = {r.scan: (r.x, r.y, r.z, r.heading_deg) for r in placed.itertuples()}
+        cylinders = cylinders_to_global(cylinder_segments or {}, pose)
+        grids = [(tbl, pose[sid]) for sid, tbl in (elevation_maps or {}).items() if sid in pose and len(tbl)]
+        ep = params.elevation
+        grid = merge_elevation(grids, ep.cell_m, ep.mode, supersample=ep.supersample) if grids else None
+        elevation = elevation_to_table(grid) if grid is not None else elevation_to_table(elevation_from_table(pd.DataFrame()))
+        bundle = {"cylinders": cylinders, "elevation": elevation, "scans": placed.reset_index(drop=True)}
+        meta = {"cylinders": len(cylinders), "elevation_cells": len(elevation), "scans": len(placed)}
+        return Output(bundle, metadata=meta, data_version=data_version(bundle))
+
+    @asset(
+        key=key("tree_list"),
+        ins={"integrated_map": AssetIn(key=key("integrated_map"))},
+        group_name="map",
+        code_version=code_version(campaign, "tree_list"),
+        description="One row per physical tree, cylinders of all scans merged: stem position at "
+        "breast height (1.3 m above the ground under the stem), ground z, DBH (forestmap's step "
+        "beyond the thesis; core/trees.py).",
+    )
+    def tree_list(context, integrated_map):
+        grid = elevation_from_table(integrated_map["elevation"])
+        trees, _ = merge_trees(integrated_map["cylinders"], grid)
+        dbh = trees["dbh_m"].dropna()
+        meta = {"trees": len(trees), "with_dbh": int(len(dbh)),
+                "median_dbh_m": round(float(dbh.median()), 3) if len(dbh) else 0.0,
+                "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum())}
+        return Output(trees, metadata=meta, data_version=data_version(trees))
+
+    return [candidate_pairs, pairwise_registrations, optimal_map, residual_checks, integrated_map, tree_list]

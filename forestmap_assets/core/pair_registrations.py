@@ -1,0 +1,162 @@
+"""Registering every candidate pair and judging each result (spec 6.5-6.7, 8.6).
+
+:func:`register_candidates` runs :func:`~forestmap_assets.core.registration.register_pair` for
+every candidate (in parallel worker processes) and returns the ``registrations.csv`` table plus
+every level's surviving cells and the secondary hypotheses. :func:`judge` decides whether a
+result may become an observation of the optimal map (inferred rules, all parameters):
+
+* ``failed``: the search could not run (empty submap, ...);
+* ``rejected``: too few matched points (``min_matched_points``), the peak on the edge of the
+  search box (the true maximum may lie outside), or ambiguous: a secondary hypothesis whose
+  score is within ``ambiguity_margin`` log-likelihood units of the best (thesis 5.3.3, spec 8.6);
+* ``accepted`` otherwise.
+
+Observation sigmas: the cell-cloud sigma of JP eq. (6) underestimates the uncertainty once the
+cloud shrinks to a few cells (spec 6.5). Each sigma is combined with the final cell's uniform
+quantisation sigma (step / sqrt(12)) and multiplied by ``sigma_scale``, calibrated on simulated
+campaigns (benchmarks/results.md, "Uncertainty").
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+import pandas as pd
+
+from ..params import RegistrationParams
+from .geometry import wrap_deg
+
+REGISTRATION_COLUMNS = [
+    "scan", "reference", "dx", "dy", "dz", "dheading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg",
+    "peak_dx", "peak_dy", "peak_dz", "peak_dheading_deg", "log_score", "n_points", "seconds", "status", "reason",
+]
+EXTRA_COLUMNS = ["matched_points", "peak_mass_share", "n_hypotheses", "best_rival_gap", "cloud_cells", "confidence"]
+
+
+def matched_points(peak_score: float, n_points: int, params: RegistrationParams) -> float:
+    """Approximate count of scan points matched at the peak: the score above the all-outlier
+    floor divided by the score gain of one perfectly matched point (inferred)."""
+    from .score import ScoreModel
+
+    model = ScoreModel.from_params(params)
+    return float(max(0.0, (peak_score - model.floor(n_points)) / (model.ln_p0 - model.ln_k1)))
+
+
+def judge(result, params: RegistrationParams, centre, half_widths, *, min_matched_points: float = 40.0,
+          ambiguity_margin: float = 10.0) -> tuple[str, str, dict]:
+    """Status (accepted / rejected / failed), one-line reason and extra figures of one result."""
+    extra = dict.fromkeys(EXTRA_COLUMNS, np.nan)
+    if result.status != "ok":
+        return "failed", result.reason or "registration failed", extra
+    matched = matched_points(result.peak_score, result.n_points, params)
+    hyp = result.hypotheses
+    gap = float(result.peak_score - hyp["peak_score"].max()) if len(hyp) else np.inf
+    extra.update(
+        matched_points=round(matched, 1),
+        peak_mass_share=result.peak_mass_share,
+        n_hypotheses=len(hyp),
+        best_rival_gap=gap,
+        cloud_cells=result.cloud_cells,
+        confidence=matched,
+    )
+    peak = np.asarray(result.peak, dtype=float)
+    lo = np.asarray(centre, dtype=float) - np.asarray(half_widths, dtype=float)
+    hi = np.asarray(centre, dtype=float) + np.asarray(half_widths, dtype=float)
+    step = np.asarray(result.final_step, dtype=float)
+    full_circle = half_widths[3] >= 180.0
+    axes = [0, 1, 2] if full_circle else [0, 1, 2, 3]
+    if matched < min_matched_points:
+        return "rejected", f"too little overlap: about {matched:.0f} matched submap points (< {min_matched_points:.0f})", extra
+    for k in axes:
+        val = peak[k] if k < 3 else centre[3] + wrap_deg(peak[3] - centre[3])
+        if val - lo[k] < 1.01 * step[k] or hi[k] - val < 1.01 * step[k]:
+            name = ("dx", "dy", "dz", "dheading")[k]
+            return "rejected", f"peak on the edge of the search box in {name}: the maximum may lie outside", extra
+    if np.isfinite(gap) and gap < ambiguity_margin:
+        return "rejected", f"ambiguous: a second hypothesis {hyp['separation_m'].iloc[int(np.argmax(hyp['peak_score'].to_numpy()))]:.2f} m away scores within {gap:.1f} of the best", extra
+    return "accepted", "", extra
+
+
+def observation_sigmas(result, sigma_scale: float = 1.0) -> np.ndarray:
+    """Cloud sigma (JP eq. 6) combined with the final cell's quantisation sigma, scaled."""
+    sigma = np.nan_to_num(np.asarray(result.sigma, dtype=float))
+    step = np.nan_to_num(np.asarray(result.final_step, dtype=float))
+    return sigma_scale * np.sqrt(sigma**2 + step**2 / 12.0)
+
+
+def _register_one(args):
+    from .registration import register_pair
+
+    scan_pts, ref_pts, centre, half, params = args
+    t0 = time.perf_counter()
+    result = register_pair(scan_pts, ref_pts, centre, half, params, method=params.method, weight=params.weight,
+                           s_floor=params.s_floor, adjacency=params.adjacency,
+                           hypothesis_separation_m=params.hypothesis_separation_m)
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def register_candidates(
+    candidates: pd.DataFrame,
+    submaps: dict[str, pd.DataFrame],
+    params: RegistrationParams,
+    *,
+    workers: int | None = None,
+    sigma_scale: float = 1.0,
+    min_matched_points: float = 40.0,
+    ambiguity_margin: float = 10.0,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, pd.DataFrame]:
+    """Register every candidate pair; return ``registrations``, ``levels`` and ``hypotheses``."""
+    jobs = []
+    for c in candidates.itertuples(index=False):
+        scan = submaps.get(c.scan)
+        ref = submaps.get(c.reference)
+        pts = lambda df: np.zeros((0, 3)) if df is None or df.empty else df[["x", "y", "z"]].to_numpy(float)  # noqa: E731
+        jobs.append((pts(scan), pts(ref), (c.cx, c.cy, c.cz, c.cheading_deg), (c.hx, c.hy, c.hz, c.hheading_deg), params))
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    results = []
+    if workers > 1 and len(jobs) > 1:
+        # spawn: a forked child would inherit the orchestrator's signal handlers and state
+        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            for k, res in enumerate(pool.map(_register_one, jobs)):
+                results.append(res)
+                if progress:
+                    progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {res.seconds:.1f} s")
+    else:
+        for k, job in enumerate(jobs):
+            results.append(_register_one(job))
+            if progress:
+                progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {results[-1].seconds:.1f} s")
+
+    rows, levels, hyps = [], [], []
+    for c, job, res in zip(candidates.itertuples(index=False), jobs, results, strict=True):
+        status, reason, extra = judge(res, params, job[2], job[3], min_matched_points=min_matched_points,
+                                      ambiguity_margin=ambiguity_margin)
+        sd = observation_sigmas(res, sigma_scale) if res.status == "ok" else np.full(4, np.nan)
+        centre = np.asarray(res.centre, dtype=float)
+        peak = np.asarray(res.peak, dtype=float)
+        rows.append({
+            "scan": c.scan, "reference": c.reference,
+            "dx": centre[0], "dy": centre[1], "dz": centre[2], "dheading_deg": wrap_deg(centre[3]) if np.isfinite(centre[3]) else np.nan,
+            "sd_x": sd[0], "sd_y": sd[1], "sd_z": sd[2], "sd_heading_deg": sd[3],
+            "peak_dx": peak[0], "peak_dy": peak[1], "peak_dz": peak[2],
+            "peak_dheading_deg": wrap_deg(peak[3]) if np.isfinite(peak[3]) else np.nan,
+            "log_score": res.peak_score, "n_points": res.n_points, "seconds": round(res.seconds, 3),
+            "status": status, "reason": reason, **extra,
+        })
+        if len(res.levels):
+            levels.append(res.levels.assign(scan=c.scan, reference=c.reference))
+        if len(res.hypotheses):
+            hyps.append(res.hypotheses.assign(scan=c.scan, reference=c.reference))
+    regs = pd.DataFrame(rows, columns=REGISTRATION_COLUMNS + EXTRA_COLUMNS)
+    return {
+        "registrations": regs,
+        "levels": pd.concat(levels, ignore_index=True) if levels else pd.DataFrame(columns=["scan", "reference"]),
+        "hypotheses": pd.concat(hyps, ignore_index=True) if hyps else pd.DataFrame(columns=["scan", "reference"]),
+    }
