@@ -121,6 +121,8 @@ class RegistrationParams(_Stage):
     s_floor: float | None = None
     adjacency: Literal[8, 80] = 80
     hypothesis_separation_m: float = 0.3
+    # (beyond the thesis, its spec 9 "future source"): dz of accepted pairs from the ground grids
+    z_from_ground: bool = True
     # candidate pairs (spec 6.4 box; inferred selection rules)
     k_nearest: int = 4
     max_distance_m: float = 30.0

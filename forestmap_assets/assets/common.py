@@ -41,7 +41,7 @@ STAGE_PARAMS: dict[str, tuple[str, ...]] = {
     "elevation_maps": ("elevation",),
     "submaps": ("submaps",),
     "candidate_pairs": ("registration",),
-    "pairwise_registrations": ("registration",),
+    "pairwise_registrations": ("registration", "elevation"),
     "optimal_map": ("mapping",),
     "residual_checks": ("mapping",),
     "integrated_map": ("elevation",),

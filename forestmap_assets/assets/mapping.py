@@ -94,15 +94,21 @@ def mapping_assets(campaign: Campaign) -> list:
 
     @asset(
         key=key("pairwise_registrations"),
-        ins={"candidate_pairs": AssetIn(key=key("candidate_pairs")), "submaps": _all_scans(key("submaps"))},
+        ins={
+            "candidate_pairs": AssetIn(key=key("candidate_pairs")),
+            "submaps": _all_scans(key("submaps")),
+            "elevation_maps": _all_scans(key("elevation_maps")),
+        },
         group_name="registration",
         code_version=code_version(campaign, "pairwise_registrations"),
         description="Globally optimal 4-DoF registration of every candidate pair by branch and "
         "bound over Olson's score: best cell, score-weighted cloud centre and sigma (JP eq. 6), "
-        "every level's surviving cells, secondary hypotheses (thesis 5.3.3; spec 6.3-6.7).",
+        "every level's surviving cells, secondary hypotheses (thesis 5.3.3; spec 6.3-6.7); dz "
+        "refined from the ground elevation maps (spec 9's proposed use).",
     )
-    def pairwise_registrations(context, candidate_pairs, submaps):
+    def pairwise_registrations(context, candidate_pairs, submaps, elevation_maps):
         bundle = register_candidates(candidate_pairs, submaps or {}, params.registration,
+                                     elevation=elevation_maps or {}, elevation_cell_m=params.elevation.cell_m,
                                      progress=context.log.info)
         regs = bundle["registrations"]
         counts = regs["status"].value_counts().to_dict()

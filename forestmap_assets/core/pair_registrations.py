@@ -35,7 +35,10 @@ REGISTRATION_COLUMNS = [
     "scan", "reference", "dx", "dy", "dz", "dheading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg",
     "peak_dx", "peak_dy", "peak_dz", "peak_dheading_deg", "log_score", "n_points", "seconds", "status", "reason",
 ]
-EXTRA_COLUMNS = ["matched_points", "peak_mass_share", "n_hypotheses", "best_rival_gap", "cloud_cells", "confidence"]
+EXTRA_COLUMNS = [
+    "matched_points", "peak_mass_share", "n_hypotheses", "best_rival_gap", "cloud_cells", "confidence",
+    "dz_features", "sd_z_features", "z_source",
+]
 
 
 def matched_points(peak_score: float, n_points: int, params: RegistrationParams) -> float:
@@ -110,9 +113,17 @@ def register_candidates(
     sigma_scale: float = 1.0,
     min_matched_points: float = 40.0,
     ambiguity_margin: float = 10.0,
+    elevation: dict[str, pd.DataFrame] | None = None,
+    elevation_cell_m: float = 0.1,
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, pd.DataFrame]:
-    """Register every candidate pair; return ``registrations``, ``levels`` and ``hypotheses``."""
+    """Register every candidate pair; return ``registrations``, ``levels`` and ``hypotheses``.
+
+    With ``params.z_from_ground`` and the scans' lowest-hit ``elevation`` grids, an accepted
+    registration's dz and its sigma come from the ground (:mod:`.ground_z`) when the ground
+    agrees with the feature-based cloud within ``3 sd + 0.1 m``; the feature-based values are
+    kept in ``dz_features``/``sd_z_features`` and ``z_source`` says which was used.
+    """
     jobs = []
     for c in candidates.itertuples(index=False):
         scan = submaps.get(c.scan)
@@ -139,7 +150,15 @@ def register_candidates(
         status, reason, extra = judge(res, params, job[2], job[3], min_matched_points=min_matched_points,
                                       ambiguity_margin=ambiguity_margin)
         sd = observation_sigmas(res, sigma_scale) if res.status == "ok" else np.full(4, np.nan)
-        centre = np.asarray(res.centre, dtype=float)
+        centre = np.asarray(res.centre, dtype=float).copy()
+        extra.update(dz_features=centre[2], sd_z_features=sd[2], z_source="features")
+        if status == "accepted" and params.z_from_ground and elevation:
+            from .ground_z import ground_dz
+
+            g = ground_dz(elevation.get(c.scan), elevation.get(c.reference), centre, elevation_cell_m)
+            if g.ok and abs(g.dz - centre[2]) <= 3 * sd[2] + 0.1:
+                centre[2], sd[2] = g.dz, g.sd
+                extra["z_source"] = f"ground ({g.n_cells} cells)"
         peak = np.asarray(res.peak, dtype=float)
         rows.append({
             "scan": c.scan, "reference": c.reference,

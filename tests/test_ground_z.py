@@ -1,0 +1,48 @@
+"""dz of a registration from two scans' lowest-hit ground grids (core/ground_z.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from forestmap_assets.core.elevation import elevation_grid
+from forestmap_assets.core.geometry import transform_points
+from forestmap_assets.core.ground_z import ground_dz
+from forestmap_assets.params import ElevationParams
+
+
+def _ground_points(rng, n=60000, bushes=True):
+    xy = rng.uniform(-20, 20, (n, 2))
+    z = 0.03 * xy[:, 0] - 0.02 * xy[:, 1] + 0.1 * np.sin(xy[:, 0] / 3) + rng.normal(0, 0.01, n)
+    if bushes:  # understorey blobs: hits above the ground in some cells
+        k = rng.random(n) < 0.05
+        z[k] += rng.uniform(0.2, 1.0, k.sum())
+    return np.column_stack([xy, z])
+
+
+def test_ground_dz_recovers_vertical_offset_despite_understorey():
+    rng = np.random.default_rng(3)
+    world = _ground_points(rng)
+    pose_s = (4.0, -2.0, 0.37, 35.0)  # scan S in the reference frame
+    ref_local = world
+    s_local = (world - np.array(pose_s[:3])) @ np.array(
+        [[np.cos(np.radians(35)), -np.sin(np.radians(35)), 0], [np.sin(np.radians(35)), np.cos(np.radians(35)), 0], [0, 0, 1]])
+    back = transform_points(s_local, pose_s)
+    np.testing.assert_allclose(back, world, atol=1e-9)
+    p = ElevationParams()
+    g_ref = elevation_grid(ref_local, p)
+    g_s = elevation_grid(s_local, p)
+    wrong_z = (pose_s[0], pose_s[1], pose_s[2] - 0.2, pose_s[3])  # the features' dz is 0.2 m off
+    res = ground_dz(g_s, g_ref, wrong_z, p.cell_m)
+    assert res.ok and res.n_cells > 1000
+    assert abs(res.dz - pose_s[2]) < 0.01
+    assert 0.0 < res.sd < 0.02
+
+
+def test_ground_dz_fails_cleanly_without_overlap():
+    rng = np.random.default_rng(4)
+    p = ElevationParams()
+    g = elevation_grid(_ground_points(rng, 5000, bushes=False), p)
+    far = ground_dz(g, g, (200.0, 0.0, 0.0, 0.0), p.cell_m)
+    assert not far.ok and far.n_cells == 0
+    assert not ground_dz(pd.DataFrame(columns=["ix", "iy", "z"]), g, (0, 0, 0, 0), p.cell_m).ok
