@@ -38,6 +38,7 @@ class SegmentationParams(_Stage):
     min_points: int = 4
     outlier_sigmas: float = 3.0  # T_out = 0.5 W + outlier_sigmas * sigma (Eq. 4.7)
     link_range_step_m: float = 0.11  # (inferred) max |delta r_mid| to link segments vertically
+    max_window_px: int = 101
 
 
 class CircleParams(_Stage):
@@ -54,7 +55,14 @@ class CircleParams(_Stage):
     robust_sigmas: float = 3.0
     robust_max_rounds: int = 10
     max_axis_tilt_deg: float = 30.0
-    fit: Literal["linear", "geometric"] = "linear"
+    fit: Literal["linear", "geometric", "ray"] = "linear"  # linear = the thesis's Eq. 4.8-4.11
+    symmetry_statistic: Literal["mean", "noise_corrected"] = "mean"
+    stable_centre_m: float = 0.001
+    stable_radius_m: float = 0.001
+    stable_normal_deg: float = 0.5
+    stable_share: float = 0.8
+    engine: Literal["auto", "numpy", "numba"] = "auto"
+    max_batch_points: int = 2_000_000
 
 
 class CylinderParams(_Stage):
@@ -64,6 +72,7 @@ class CylinderParams(_Stage):
     curvature_deg: float = 12.0
     max_gap_m: float = 0.24
     min_circles: int = 3
+    curvature_reference: Literal["first", "running"] = "first"
 
 
 class LineParams(_Stage):

@@ -54,7 +54,7 @@ def feature_assets(campaign: Campaign) -> list:
     )
     def segments(context, range_images):
         image = _image(range_images)
-        table = segment_scan_lines(image, params.segmentation)
+        table = segment_scan_lines(image, params.segmentation, max_window_px=params.segmentation.max_window_px)
         meta = {
             "segments": len(table),
             "chains": int(table["chain_id"].nunique()) if len(table) else 0,
@@ -77,7 +77,10 @@ def feature_assets(campaign: Campaign) -> list:
     )
     def circle_models(context, range_images, segments):
         image = _image(range_images)
-        table = fit_circle_models(image, segments, params.circles, params.segmentation)
+        cp = params.circles
+        options = ("fit", "symmetry_statistic", "stable_centre_m", "stable_radius_m", "stable_normal_deg",
+                   "stable_share", "max_batch_points", "engine")
+        table = fit_circle_models(image, segments, cp, params.segmentation, **{k: getattr(cp, k) for k in options})
         meta: dict = {"circles": len(table)}
         if len(table):
             last = table[table["iteration"] == table["iteration"].max()]
@@ -108,7 +111,7 @@ def feature_assets(campaign: Campaign) -> list:
     )
     def cylinder_segments(context, circle_models):
         final = circle_models[circle_models["iteration"] == circle_models["iteration"].max()] if len(circle_models) else circle_models
-        table = assemble_cylinders(final, params.cylinders)
+        table = assemble_cylinders(final, params.cylinders, reference=params.cylinders.curvature_reference)
         meta = {
             "cylinders": len(table),
             "total_length_m": round(float(table["length_m"].sum()), 2) if len(table) else 0.0,

@@ -1,0 +1,305 @@
+"""Scan-line segmentation of a range image (spec 2; Th. 4.6.1, Table 4.1; JP II-A).
+
+Every row of the range image is a horizontal scan line. Each row is
+
+1. filtered with the "blocking object" **max filter** (spec 2.2 step 1): every range is replaced
+   by the largest range in a window whose width in pixels is the odd count covering
+   ``max_occluder_m`` at the pixel's own range, so that occluders narrower than that vanish;
+2. cut into **runs** wherever two consecutive filtered ranges differ by more than
+   ``range_step_m`` (or a pixel has no return);
+3. each run is **widened back** by the filter's half window (the max filter erodes a near object
+   by that much on each side), clipped to the outermost pixels with a return;
+4. a run is **accepted** as a segment if its metric width W lies in [min_width_m, max_width_m]
+   and it holds at least ``min_points`` inlier measurements;
+5. inside a segment every point with ``|r - r_mid| > T_out = 0.5 W + 3 sigma`` (Eq. 4.7) is an
+   **outlier**, ``r_mid`` being the filtered range at the middle of the run;
+6. segments of adjacent rows whose column intervals overlap and whose ``r_mid`` differ by less
+   than ``link_range_step_m`` are **linked** into vertical chains (spec 2.4).
+
+Everything is vectorised over the whole image (flattened rows, cumulative sums, a sparse-table
+max filter); there is no Python loop over rows or pixels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from forestmap_assets.core.range_image import RangeImage, levelling_rotation
+from forestmap_assets.params import SegmentationParams
+
+SEGMENT_COLUMNS: dict[str, str] = {
+    "segment_id": "int64",
+    "row": "int64",
+    "col0": "int64",
+    "col1": "int64",
+    "n_points": "int64",
+    "n_inliers": "int64",
+    "width_m": "float64",
+    "r_mid": "float64",
+    "t_out_m": "float64",
+    "half_window_px": "int64",
+    "elevation_deg": "float64",
+    "azimuth_mid_deg": "float64",
+    "chain_id": "int64",
+}
+
+
+def empty_segments() -> pd.DataFrame:
+    """A well-formed segment table with no rows."""
+    return pd.DataFrame({k: pd.Series([], dtype=v) for k, v in SEGMENT_COLUMNS.items()})
+
+
+def _angular_step_rad(values_deg: np.ndarray) -> float:
+    if values_deg.size < 2:
+        return np.radians(0.108)
+    return float(np.radians(np.median(np.abs(np.diff(values_deg)))))
+
+
+def occluder_window(range_m: np.ndarray, elevation_deg: np.ndarray, azimuth_step_rad: float,
+                    max_occluder_m: float, max_window_px: int = 101) -> np.ndarray:
+    """Odd window width (pixels) of the blocking-object max filter at each pixel (spec 2.2).
+
+    The width is the smallest odd integer >= ``max_occluder_m / pitch + 1`` where
+    ``pitch = r cos(el) d_az`` is the metric horizontal pixel pitch at the pixel's own range
+    (inferred: horizontal pitch of a row at elevation el). Capped at ``max_window_px``
+    (inferred). No-return pixels get width 1.
+    """
+    pitch = np.asarray(range_m, np.float64) * np.cos(np.radians(elevation_deg))[:, None]
+    pitch *= azimuth_step_rad
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x = np.ceil(max_occluder_m / pitch + 1.0)
+    x = np.where(np.isfinite(x), x, 1.0)
+    x = np.clip(x, 1, max_window_px)
+    w = x.astype(np.int64)
+    return w + (w % 2 == 0)
+
+
+def blocking_max_filter(range_m: np.ndarray, window_px: np.ndarray) -> np.ndarray:
+    """Row-wise max filter with a per-pixel odd window (spec 2.2 step 1).
+
+    No-return pixels are ignored inside windows and stay NaN. Uses a sparse table of
+    power-of-two running maxima, so the cost is O(pixels log(max window)).
+    """
+    r = np.where(np.isfinite(range_m), range_m, -np.inf).astype(np.float32)
+    rows, cols = r.shape
+    hw = (window_px - 1) // 2
+    hmax = int(hw.max()) if hw.size else 0
+    if hmax == 0:
+        return np.where(np.isfinite(range_m), range_m, np.nan).astype(np.float32)
+    pad = np.full((rows, cols + 2 * hmax), -np.inf, np.float32)
+    pad[:, hmax:hmax + cols] = r
+    levels = [pad]
+    k = 1
+    while 2 * k <= 2 * hmax + 1:
+        prev = levels[-1]
+        nxt = prev.copy()
+        nxt[:, :-k] = np.maximum(prev[:, :-k], prev[:, k:])
+        levels.append(nxt)
+        k *= 2
+    width = 2 * hw + 1
+    lev = np.floor(np.log2(width)).astype(np.int64)
+    span = np.left_shift(1, lev)
+    col = np.arange(cols)[None, :] + hmax
+    left = col - hw
+    right = col + hw - span + 1
+    out = np.empty((rows, cols), np.float32)
+    row_idx = np.broadcast_to(np.arange(rows)[:, None], (rows, cols))
+    for li, table in enumerate(levels):
+        sel = lev == li
+        if not sel.any():
+            continue
+        rr = row_idx[sel]
+        out[sel] = np.maximum(table[rr, left[sel]], table[rr, right[sel]])
+    out[~np.isfinite(range_m)] = np.nan
+    return out
+
+
+def _chord(r0: np.ndarray, r1: np.ndarray, az0: np.ndarray, az1: np.ndarray,
+           el: np.ndarray) -> np.ndarray:
+    """Euclidean distance between two points of one scan line (same elevation)."""
+    ce, se = np.cos(el), np.sin(el)
+    p0 = np.stack([r0 * ce * np.cos(az0), r0 * ce * np.sin(az0), r0 * se], -1)
+    p1 = np.stack([r1 * ce * np.cos(az1), r1 * ce * np.sin(az1), r1 * se], -1)
+    return np.linalg.norm(p1 - p0, axis=-1)
+
+
+def segment_scan_lines(image: RangeImage, params: SegmentationParams | None = None, *,
+                       max_window_px: int = 101) -> pd.DataFrame:
+    """Scan-line segments of ``image`` (spec 2.2-2.4, Eq. 4.7), one row per accepted segment.
+
+    Columns: ``segment_id, row, col0, col1`` (widened run, inclusive), ``n_points`` (returns in
+    the run), ``n_inliers`` (returns passing the T_out gate), ``width_m`` (W: chord between the
+    run's end pixels at the filtered end ranges, inferred), ``r_mid`` (filtered range at the
+    run's middle), ``t_out_m`` (Eq. 4.7), ``half_window_px``, ``elevation_deg``,
+    ``azimuth_mid_deg``, ``chain_id`` (vertical overlap chain, spec 2.4). Inlier pixels are
+    recovered with :func:`segment_pixels` / :func:`segment_mask`.
+    """
+    p = params or SegmentationParams()
+    rng = np.asarray(image.range_m, np.float32)
+    if rng.size == 0 or not np.isfinite(rng).any():
+        return empty_segments()
+    rows, cols = rng.shape
+    az = np.radians(image.azimuth_deg)
+    el = np.radians(image.elevation_deg)
+    daz = _angular_step_rad(image.azimuth_deg)
+    window = occluder_window(rng, image.elevation_deg, daz, p.max_occluder_m, max_window_px)
+    filt = blocking_max_filter(rng, window)
+
+    # --- runs of the filtered profile (spec 2.2 step 2), on the flattened image ------------
+    f = filt.ravel()
+    fin = np.isfinite(f)
+    colpos = np.tile(np.arange(cols), rows)
+    with np.errstate(invalid="ignore"):
+        joined = np.zeros(f.size, bool)  # joined[i]: pixel i continues the run of pixel i-1
+        joined[1:] = fin[1:] & fin[:-1] & (np.abs(f[1:] - f[:-1]) <= p.range_step_m)
+    joined &= colpos != 0
+    nxt_joined = np.zeros(f.size, bool)
+    nxt_joined[:-1] = joined[1:]
+    starts = np.flatnonzero(fin & ~joined)
+    ends = np.flatnonzero(fin & ~nxt_joined)
+    if starts.size == 0:
+        return empty_segments()
+    row = starts // cols
+    s_col, e_col = starts - row * cols, ends - row * cols
+    mid = (starts + ends) // 2
+    r_mid = f[mid].astype(np.float64)
+
+    # --- widen back by the half window at r_mid, clip to pixels with a return (step 3) ------
+    w_mid = occluder_window(r_mid[:, None], image.elevation_deg[row], daz, p.max_occluder_m,
+                            max_window_px)[:, 0]
+    hw = (w_mid - 1) // 2
+    valid = np.isfinite(rng).ravel()
+    idx = np.arange(f.size)
+    nxt_valid = np.where(valid, idx, f.size)
+    nxt_valid = np.minimum.accumulate(nxt_valid[::-1])[::-1]
+    prv_valid = np.maximum.accumulate(np.where(valid, idx, -1))
+    c0 = np.maximum(s_col - hw, 0)
+    c1 = np.minimum(e_col + hw, cols - 1)
+    c0 = np.minimum(nxt_valid[row * cols + c0] - row * cols, s_col)
+    c1 = np.maximum(prv_valid[row * cols + c1] - row * cols, e_col)
+
+    # --- width W and acceptance (step 3) ---------------------------------------------------
+    width = _chord(f[starts].astype(np.float64), f[ends].astype(np.float64), az[c0], az[c1],
+                   el[row])
+    csum = np.concatenate([[0], np.cumsum(valid)])
+    n_points = csum[row * cols + c1 + 1] - csum[row * cols + c0]
+    keep = (width >= p.min_width_m) & (width <= p.max_width_m) & (n_points >= p.min_points)
+    if not keep.any():
+        return empty_segments()
+    row, c0, c1, r_mid, width, n_points, hw, s_col, e_col = (
+        a[keep] for a in (row, c0, c1, r_mid, width, n_points, hw, s_col, e_col))
+
+    # --- outlier gate T_out = 0.5 W + 3 sigma (Eq. 4.7, step 4) ----------------------------
+    t_out = 0.5 * width + p.outlier_sigmas * p.range_sigma_m
+    seg, pr, pc = _expand(row, c0, c1)
+    rr = rng[pr, pc]
+    with np.errstate(invalid="ignore"):
+        inl = np.abs(rr - r_mid[seg]) <= t_out[seg]
+    n_inl = np.bincount(seg, weights=inl, minlength=row.size).astype(np.int64)
+    keep = n_inl >= p.min_points
+    if not keep.any():
+        return empty_segments()
+    df = pd.DataFrame({
+        "segment_id": np.arange(int(keep.sum()), dtype=np.int64),
+        "row": row[keep].astype(np.int64),
+        "col0": c0[keep].astype(np.int64),
+        "col1": c1[keep].astype(np.int64),
+        "n_points": n_points[keep].astype(np.int64),
+        "n_inliers": n_inl[keep],
+        "width_m": width[keep],
+        "r_mid": r_mid[keep],
+        "t_out_m": t_out[keep],
+        "half_window_px": hw[keep].astype(np.int64),
+        "elevation_deg": image.elevation_deg[row[keep]].astype(np.float64),
+        "azimuth_mid_deg": image.azimuth_deg[(c0[keep] + c1[keep]) // 2].astype(np.float64),
+    })
+    df["chain_id"] = link_chains(df, cols, p.link_range_step_m)
+    return df.astype(SEGMENT_COLUMNS)
+
+
+def _expand(row: np.ndarray, c0: np.ndarray, c1: np.ndarray):
+    """(segment index, row, col) of every pixel of every interval [c0, c1] of ``row``."""
+    n = (c1 - c0 + 1).astype(np.int64)
+    seg = np.repeat(np.arange(n.size), n)
+    first = np.concatenate([[0], np.cumsum(n)[:-1]])
+    col = c0[seg] + (np.arange(seg.size) - first[seg])
+    return seg, row[seg], col
+
+
+def link_chains(segments: pd.DataFrame, cols: int, link_range_step_m: float) -> np.ndarray:
+    """Vertical chain label per segment (spec 2.4): adjacent rows, overlapping column intervals,
+    ``|delta r_mid| <= link_range_step_m`` (inferred); connected components, numbered in order
+    of their first segment."""
+    n = len(segments)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    row = segments["row"].to_numpy()
+    c0 = segments["col0"].to_numpy()
+    c1 = segments["col1"].to_numpy()
+    rm = segments["r_mid"].to_numpy()
+    key = row * (cols + 1) + c0
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    maxspan = int((c1 - c0).max())
+    lo = np.searchsorted(skey, (row + 1) * (cols + 1) + np.maximum(c0 - maxspan, 0), "left")
+    hi = np.searchsorted(skey, (row + 1) * (cols + 1) + c1, "right")
+    cnt = hi - lo
+    a = np.repeat(np.arange(n), cnt)
+    first = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    b = order[lo[a] + (np.arange(a.size) - first[a])]
+    ok = (row[b] == row[a] + 1) & (c0[b] <= c1[a]) & (c1[b] >= c0[a])
+    ok &= np.abs(rm[b] - rm[a]) <= link_range_step_m
+    a, b = a[ok], b[ok]
+    g = coo_matrix((np.ones(a.size), (a, b)), shape=(n, n))
+    _, lab = connected_components(g, directed=False)
+    # renumber by first appearance
+    first_seen = np.full(lab.max() + 1, n)
+    np.minimum.at(first_seen, lab, np.arange(n))
+    rank = np.empty_like(first_seen)
+    rank[np.argsort(first_seen, kind="stable")] = np.arange(first_seen.size)
+    return rank[lab].astype(np.int64)
+
+
+def segment_pixels(image: RangeImage, segments: pd.DataFrame, *, inliers_only: bool = True):
+    """Pixels of every segment: ``(segment_index, row, col, inlier)`` arrays, grouped by segment.
+
+    ``segment_index`` is the positional index into ``segments``. With ``inliers_only`` only
+    pixels passing the T_out gate (Eq. 4.7) are returned (``inlier`` then all True).
+    """
+    if len(segments) == 0:
+        z = np.zeros(0, np.int64)
+        return z, z, z, np.zeros(0, bool)
+    row = segments["row"].to_numpy(np.int64)
+    seg, pr, pc = _expand(row, segments["col0"].to_numpy(np.int64),
+                          segments["col1"].to_numpy(np.int64))
+    rr = image.range_m[pr, pc]
+    with np.errstate(invalid="ignore"):
+        inl = np.abs(rr - segments["r_mid"].to_numpy()[seg]) <= segments["t_out_m"].to_numpy()[seg]
+    if inliers_only:
+        return seg[inl], pr[inl], pc[inl], inl[inl]
+    return seg, pr, pc, inl
+
+
+def segment_mask(image: RangeImage, segments: pd.DataFrame) -> np.ndarray:
+    """Boolean (rows, cols) image of segment inlier pixels (the Fig. 4.9 / 4.15b artefact)."""
+    mask = np.zeros(image.shape, bool)
+    _, pr, pc, _ = segment_pixels(image, segments)
+    mask[pr, pc] = True
+    return mask
+
+
+def pixel_xyz(image: RangeImage, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    """Levelled xyz (n, 3) of the given pixels, without building the whole point image."""
+    if image._xyz is not None:
+        return image._xyz[row, col]
+    r = image.range_m[row, col].astype(np.float64)
+    az = np.radians(image.azimuth_deg[col])
+    el = np.radians(image.elevation_deg[row])
+    ce = np.cos(el)
+    pts = np.stack([r * ce * np.cos(az), r * ce * np.sin(az), r * np.sin(el)], -1)
+    if any(image.tilt_deg):
+        pts = pts @ levelling_rotation(*image.tilt_deg).T
+    return pts
