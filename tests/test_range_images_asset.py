@@ -23,7 +23,7 @@ def test_range_images_materialise_level_and_cache(tmp_path, _isolated_home):
     campaign = load_campaign(root)
     summary = run_campaign(root, progress=lambda m: None)
     assert summary.failures == []
-    assert sorted(summary.ran) == [("range_images", s) for s in ("R", "S", "T")]
+    assert sorted(x for x in summary.ran if x[0] == "range_images") == [("range_images", s) for s in ("R", "S", "T")]
 
     raw = np.load(root / "scans" / "S.npz")
     image = _stored(_isolated_home, campaign, "S")
@@ -45,14 +45,17 @@ def test_range_images_materialise_level_and_cache(tmp_path, _isolated_home):
     data = dict(np.load(root / "scans" / "T.npz"))
     data["range"] = data["range"] * 1.01
     np.savez(root / "scans" / "T.npz", **data)
-    assert run_campaign(root, progress=lambda m: None).ran == [("range_images", "T")]
+    rerun = run_campaign(root, progress=lambda m: None).ran
+    assert ("range_images", "T") in rerun
+    assert {scan for _, scan in rerun if scan is not None} == {"T"}  # no other scan's work
 
 
 def test_corrupt_scan_fails_only_its_partition(tmp_path, _isolated_home):
     root = write_campaign(tmp_path / "plot", scans=("T", "S"))
     (root / "scans" / "S.npz").write_bytes(b"this is not a numpy archive")
     summary = run_campaign(root, progress=lambda m: None)
-    assert summary.ran == [("range_images", "T")]
+    assert ("range_images", "T") in summary.ran
+    assert {scan for _, scan in summary.ran if scan is not None} == {"T"}
     (stage, scan, reason), = summary.failures
     assert scan == "S" and "S.npz" in reason and "\n" not in reason
     store = _isolated_home / "store" / "test_campaign" / "range_images"
