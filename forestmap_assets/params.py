@@ -130,6 +130,8 @@ class RegistrationParams(_Stage):
     s_floor: float | None = None
     adjacency: Literal[8, 80] = 80
     hypothesis_separation_m: float = 0.3
+    max_cells: int = 60_000  # a level keeping more cells than this is reported as ambiguous
+    min_matched_stems: int = 4  # (inferred) distinct features supporting an accepted result
     # (beyond the thesis, its spec 9 "future source"): dz of accepted pairs from the ground grids
     z_from_ground: bool = True
     # candidate pairs (spec 6.4 box; inferred selection rules)
@@ -178,7 +180,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "outdoor": {
         "circles": {"symmetry_threshold_m": 0.0041},
         "cylinders": {"min_length_m": 0.3, "curvature_deg": 10.0},
-        "registration": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156},
+        "registration": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156,
+                         "min_matched_stems": 3},
     },
     "indoor": {
         "segmentation": {"min_width_m": 0.2},
@@ -191,7 +194,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "end_distance_m": 0.15,
             "min_length_m": 2.0,
         },
-        "registration": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195},
+        "registration": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195,
+                         "min_matched_stems": 2},
     },
 }
 

@@ -152,3 +152,52 @@ def test_lattice_levels_halve_to_final_cell():
     assert lat.wrap and lat.n[3] * lat.step[3] == pytest.approx(2 * np.pi)
     assert lat.step[3] * 6.5 <= 0.02
     assert len(lat.schedule()) == int(np.log2(lat.n).sum())
+
+
+def test_first_hypotheses_change_speed_not_result():
+    """Voting and seeds only raise the initial best score: same lattice maximum without them."""
+    pa, pb, truth = _stem_points(2, n_trees=25, half_extent_m=8.0, max_range_m=9.0)
+    box = (1.0, 1.0, 0.3, 8.0)
+    centre = truth + np.array([0.4, -0.3, 0.1, 3.0])
+    params = RegistrationParams(final_cell_m=0.04)
+    runs = [register_pair(pb, pa, centre, box, params, vote=v, seeds=s, tight_bound=t)
+            for v, s, t in ((True, None, True), (False, None, False), (False, [centre], True))]
+    for r in runs[1:]:
+        assert r.peak_score == pytest.approx(runs[0].peak_score, rel=1e-12, abs=1e-9)
+        np.testing.assert_allclose(r.peak, runs[0].peak, atol=1e-9)
+    assert runs[0].n_cells_evaluated <= runs[1].n_cells_evaluated
+
+
+def test_chunked_evaluation_gives_the_same_search(monkeypatch):
+    """Memory-bounded chunks of live points (and a best raised chunk by chunk) change nothing."""
+    import forestmap_assets.core.registration as reg
+
+    pa, pb, truth = _stem_points(3, n_trees=20, half_extent_m=7.0, max_range_m=8.0)
+    args = (pb, pa, truth + np.array([0.3, 0.2, 0.1, 2.0]), (0.6, 0.6, 0.3, 5.0),
+            RegistrationParams(final_cell_m=0.04))
+    whole = register_pair(*args)
+    monkeypatch.setattr(reg, "LIVE_CHUNK", 3000)
+    chunked = register_pair(*args)
+    assert chunked.peak_score == whole.peak_score and chunked.peak == whole.peak
+    assert chunked.cloud_cells == whole.cloud_cells
+
+
+def test_stem_voting_finds_the_alignment():
+    from forestmap_assets.core.stem_voting import vote_alignments
+
+    pa, pb, truth = _stem_points(5)
+    hyp = vote_alignments(pb, pa, (0, 0, 0, 0), (6.0, 6.0, 1.0, 180.0))
+    e = hyp[0] - truth
+    e[3] = (e[3] + 180) % 360 - 180
+    assert np.hypot(e[0], e[1]) < 0.4 and abs(e[3]) < 2.0
+
+
+def test_ambiguous_search_stops_at_cell_budget():
+    """A single short stem against a stand: every stem matches it at any heading; the search
+    gives up with an 'ambiguous' failure instead of refining a huge cloud."""
+    pa, _, _ = _stem_points(6)
+    z = np.arange(0.0, 1.0, 0.05)
+    one = np.column_stack([np.full_like(z, 2.0), np.zeros_like(z), z])
+    r = register_pair(one, pa, (0, 0, 0, 0), (8.0, 8.0, 0.5, 180.0), RegistrationParams(),
+                      max_cells=2000)
+    assert r.status == "failed" and "ambiguous" in r.reason

@@ -36,7 +36,7 @@ REGISTRATION_COLUMNS = [
     "peak_dx", "peak_dy", "peak_dz", "peak_dheading_deg", "log_score", "n_points", "seconds", "status", "reason",
 ]
 EXTRA_COLUMNS = [
-    "matched_points", "peak_mass_share", "n_hypotheses", "best_rival_gap", "cloud_cells", "confidence",
+    "matched_points", "matched_stems", "peak_mass_share", "n_hypotheses", "best_rival_gap", "cloud_cells", "confidence",
     "dz_features", "sd_z_features", "z_source",
 ]
 
@@ -52,15 +52,23 @@ def matched_points(peak_score: float, n_points: int, params: RegistrationParams)
 
 def judge(result, params: RegistrationParams, centre, half_widths, *, min_matched_points: float = 40.0,
           ambiguity_margin: float = 10.0) -> tuple[str, str, dict]:
-    """Status (accepted / rejected / failed), one-line reason and extra figures of one result."""
+    """Status (accepted / rejected / failed), one-line reason and extra figures of one result.
+
+    Besides the rules of the module docstring, a result must match at least
+    ``params.min_matched_stems`` distinct features (a single stem fits anywhere along a ring).
+    """
     extra = dict.fromkeys(EXTRA_COLUMNS, np.nan)
     if result.status != "ok":
+        if (result.reason or "").startswith("ambiguous"):
+            return "rejected", result.reason, extra
         return "failed", result.reason or "registration failed", extra
     matched = matched_points(result.peak_score, result.n_points, params)
     hyp = result.hypotheses
     gap = float(result.peak_score - hyp["peak_score"].max()) if len(hyp) else np.inf
+    stems = int(getattr(result, "matched_stems", 0))
     extra.update(
         matched_points=round(matched, 1),
+        matched_stems=stems,
         peak_mass_share=result.peak_mass_share,
         n_hypotheses=len(hyp),
         best_rival_gap=gap,
@@ -75,6 +83,8 @@ def judge(result, params: RegistrationParams, centre, half_widths, *, min_matche
     axes = [0, 1, 2] if full_circle else [0, 1, 2, 3]
     if matched < min_matched_points:
         return "rejected", f"too little overlap: about {matched:.0f} matched submap points (< {min_matched_points:.0f})", extra
+    if stems < params.min_matched_stems:
+        return "rejected", f"too little overlap: only {stems} distinct features match (< {params.min_matched_stems})", extra
     for k in axes:
         val = peak[k] if k < 3 else centre[3] + wrap_deg(peak[3] - centre[3])
         if val - lo[k] < 1.01 * step[k] or hi[k] - val < 1.01 * step[k]:
@@ -99,7 +109,7 @@ def _register_one(args):
     t0 = time.perf_counter()
     result = register_pair(scan_pts, ref_pts, centre, half, params, method=params.method, weight=params.weight,
                            s_floor=params.s_floor, adjacency=params.adjacency,
-                           hypothesis_separation_m=params.hypothesis_separation_m)
+                           hypothesis_separation_m=params.hypothesis_separation_m, max_cells=params.max_cells)
     result.seconds = time.perf_counter() - t0
     return result
 

@@ -15,14 +15,18 @@ of map A (the reference) maximises Olson's log-likelihood ``sum_i ln p(D_i(T))``
   cell with ``sum_i ln p(max(D_i - Delta_i, 0))``, ``Delta_i = |e_xyz| + 2 d_i sin(e_h / 2)``
   (Eq. 5.11-5.14; ``e`` = largest offset from the evaluation point to the cell's faces). Cells
   whose bound is below the best score so far are pruned (ties survive).
-* **Initial best.** The score at the lattice point nearest the a priori pose (spec 6.4, plus any
-  ``seeds``), raised early by (inferred) hypotheses: short 4-DoF ICP refinements started from the
-  highest-bound cells when cells first shrink below ``refine_at_m`` (2.5, 1.2, 0.6 m), and an
-  optional beam pass. These only raise the best *lattice* score; they never remove a cell that
-  could win, so the result does not depend on them.
+* **Initial best.** The score at the lattice point nearest the a priori pose (spec 6.4), raised
+  before the first level by (inferred) first hypotheses: stem-to-stem voting
+  (:mod:`.stem_voting`), each vote peak refined by a short 4-DoF ICP, its height picked from all
+  lattice heights and the best ones hill-climbed on the lattice (plus any ``seeds``). They only
+  raise the best *lattice* score; they never remove a cell that could win, so the result does
+  not depend on them (a poor hypothesis only costs time).
 * **Speed-ups (inferred, exact).** Coarse levels are bounded with voxel clusters of B's points;
-  points whose bound term is ``ln k1`` in every cell are dropped from deeper levels (their term
-  is exactly ``ln k1`` below); fine levels use the per-axis ("tighter", spec 6.4) bound.
+  below, every cell carries the list of its *live* points (a point whose distance lower bound is
+  ``>= cap`` everywhere in a cell scores exactly ``ln k1`` in all its sub-cells, so it is
+  dropped from them); nearest distances come from a sparse candidate grid of A, and fine levels
+  use the per-axis ("tighter", spec 6.4) bound where it is cheap to make rigorous
+  (:mod:`.score_field`).
 * **Cell cloud (spec 6.5, JP eq. 6).** Surviving final cells are grouped into connected clouds on
   the lattice (80- or 8-neighbour adjacency; heading wraps on a full circle). The best cell's cloud
   gives the weighted centre and standard deviation with ``l = s - s_floor`` (``s_floor = n ln k1``)
@@ -31,12 +35,15 @@ of map A (the reference) maximises Olson's log-likelihood ``sum_i ln p(D_i(T))``
 * **Peak-mass share (spec 6.7, Olson).** ``share = M_peak / (M_final + M_pruned)`` with masses in
   units of final-cell volume relative to the best score: ``M_peak = sum_{k in best cloud}
   exp(s_k - s*)``, ``M_final`` the same over every surviving final cell, and ``M_pruned =
-  sum_{pruned cells c} n_c exp(bound_c - s*)`` (``n_c`` final cells in ``c``; the bound is the
-  pruned cell's largest possible score, so the share is a conservative lower value).
+  sum_{pruned cells c} n_c exp(s_c - s*)`` (``n_c`` final cells in ``c``, ``s_c`` the score at
+  its evaluation point; inferred: with a few thousand points the per-point bounds exceed the
+  scores by hundreds of log units, so a bound-weighted mass would say nothing). The thesis
+  evaluator (``method='thesis'``) keeps the bound-weighted, conservative form.
 
-Two evaluators: ``method="fast"`` (default; exact nearest-neighbour distances from a voxel
-candidate index, compiled with numba, :mod:`.score_field`) and ``method="thesis"`` (the plain
-algorithm: k-d tree distances for every point of every cell). Both return the same lattice maximum.
+Two evaluators: ``method="fast"`` (default; exact nearest-neighbour distances from a sparse
+voxel candidate index, compiled with numba, live points per cell, first hypotheses) and
+``method="thesis"`` (the plain algorithm: k-d tree distances for every point of every cell).
+Both return the same lattice maximum.
 """
 
 from __future__ import annotations
@@ -71,7 +78,9 @@ class RegistrationResult:
 
     ``peak`` is the best final cell's centre (dx, dy, dz, dh_deg) and ``peak_score`` its
     log-likelihood; ``centre``/``sigma`` the weighted mean and standard deviation of its connected
-    cloud (JP eq. 6); ``levels`` every level's surviving cells; ``hypotheses`` the secondary clouds.
+    cloud (JP eq. 6); ``levels`` every level's surviving cells; ``hypotheses`` the secondary clouds;
+    ``matched_stems`` the number of distinct stems (blobs of matched points, :func:`matched_stems`)
+    that support the peak.
     """
 
     status: str
@@ -89,6 +98,7 @@ class RegistrationResult:
     final_step: tuple[float, float, float, float] = (np.nan,) * 4
     d_bar_m: float = np.nan
     method: str = "fast"
+    matched_stems: int = 0
     levels: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=list(LEVEL_COLUMNS)))
     hypotheses: pd.DataFrame = field(
         default_factory=lambda: pd.DataFrame(columns=list(HYPOTHESIS_COLUMNS))
@@ -206,24 +216,6 @@ class _KdEvaluator:
                 if active is not None:
                     active |= np.any(r < self.cap, axis=0).astype(np.uint8)
         return out_s, out_b
-
-
-class _FieldEvaluator:
-    """Exact scores and rigorous bounds from a :class:`~.score_field.ReferenceField`."""
-
-    def __init__(self, reference: np.ndarray, model: ScoreModel, **field_kw):
-        from .score_field import ReferenceField
-
-        self.field = ReferenceField(reference, model, **field_kw)
-
-    def __call__(
-        self, poses, points, delta, score=True, bound=True, rot=None, e_box=None, weight=None,
-        active=None,
-    ):
-        return self.field.evaluate(
-            poses, points, delta, rot=rot, e_box=e_box, weight=weight, score=score, bound=bound,
-            active=active,
-        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -407,6 +399,197 @@ def _branch_and_bound(
     )
 
 
+_FACE = np.vstack([np.eye(4, dtype=np.int64), -np.eye(4, dtype=np.int64)])
+
+
+def _clip_index(lattice: SearchLattice, idx: np.ndarray) -> np.ndarray:
+    idx = idx.copy()
+    if lattice.wrap:
+        idx[:, 3] %= lattice.n[3]
+    return np.clip(idx, 0, lattice.n - 1)
+
+
+def climb(field, points: np.ndarray, lattice: SearchLattice, idx, steps=(16, 8, 4, 2, 1),
+          max_moves: int = 100):
+    """Inferred first-hypothesis helper: hill climbing on the final lattice with exact scores
+    from lattice index ``idx`` by face moves of ``steps`` lattice cells. Returns (index, score).
+    Only raises the search's initial best score (the bounds are far looser than the gap to the
+    true maximum, so a local maximum is enough)."""
+    cur = np.asarray(idx, dtype=np.int64).reshape(1, 4)
+    s_cur = float(field.evaluate(lattice.pose(cur), points, bound=False)[0][0])
+    moves = 0
+    for step in steps:
+        while moves < max_moves:
+            nb_idx = _clip_index(lattice, cur + _FACE * step)
+            s = field.evaluate(lattice.pose(nb_idx), points, bound=False)[0]
+            j = int(np.argmax(s))
+            if s[j] <= s_cur:
+                break
+            cur, s_cur = nb_idx[j : j + 1], float(s[j])
+            moves += 1
+    return cur[0], s_cur
+
+
+def _first_hypotheses(points, lattice, field, tree, starts_rad, n_climb=2):
+    """Best exact lattice score over the hypotheses ``starts_rad`` (k, 4; heading radians):
+    each refined by 4-DoF ICP (xy, heading) and its height chosen from every lattice z at that
+    (x, y, heading); the ``n_climb`` best are then hill-climbed on the lattice (inferred, spec
+    6.4 'initial best')."""
+    cand, score = [], []
+    for p0 in np.asarray(starts_rad, dtype=float).reshape(-1, 4):
+        idx = lattice.nearest_index(refine_local(points, tree, p0)[None])[0]
+        col = np.repeat(idx[None], lattice.n[2], axis=0)  # all heights at this (x, y, heading)
+        col[:, 2] = np.arange(lattice.n[2])
+        s = field.evaluate(lattice.pose(col), points, bound=False)[0]
+        cand.append(col[int(np.argmax(s))])
+        score.append(float(np.max(s)))
+    best_idx, best = None, -np.inf
+    for k in np.argsort(score)[::-1][:n_climb]:
+        idx, s = climb(field, points, lattice, cand[k])
+        if s > best:
+            best_idx, best = idx, s
+    return best_idx, best
+
+
+LIVE_CHUNK = 4_000_000  # live entries per evaluation chunk (memory bound, inferred)
+
+
+def _eval_live_chunked(field, poses, par, off, idx, pts, d_xy, e, tight, best, limit=None):
+    """:meth:`~.score_field.ReferenceField.eval_live` over chunks of at most ``limit`` live
+    entries (bounded memory); each chunk keeps the live lists of its cells whose bound reaches
+    the best score known so far (raised by the chunk's quick scores). Returns bounds, quick
+    scores, the mask of cells with lists (a superset of the level's survivors) and their CSR."""
+    from .score_field import compact_live
+
+    limit = LIVE_CHUNK if limit is None else limit
+    n = len(poses)
+    csum = np.cumsum(np.diff(off)[par])
+    bounds, scores = np.empty(n), np.empty(n)
+    pre = np.zeros(n, bool)
+    offs, lives, total, start = [np.zeros(1, np.int64)], [], 0, 0
+    while start < n:
+        base = csum[start - 1] if start else 0
+        end = max(start + 1, int(np.searchsorted(csum, base + limit, side="right")))
+        b, s, c_off, c_cnt, c_live = field.eval_live(poses[start:end], par[start:end], off, idx,
+                                                     pts, d_xy, e, tight)
+        bounds[start:end], scores[start:end] = b, s
+        best = max(best, float(np.max(s)))
+        k = b >= best
+        pre[start:end] = k
+        o, lv = compact_live(k, c_off, c_cnt, c_live)
+        offs.append(o[1:] + total)
+        lives.append(lv)
+        total += len(lv)
+        start = end
+    return bounds, scores, pre, np.concatenate(offs), np.concatenate(lives)
+
+
+def _fast_search(points, reference, lattice: SearchLattice, model, field, keep_levels=True,
+                 starts=None, cluster_ratio=0.25, score_top=8, tight=True, n_refine=8,
+                 refine_at_m=(), max_cells=60_000):
+    """Level-synchronous search (spec 6.4) on a :class:`~.score_field.ReferenceField` with live
+    points per cell (:func:`~.score_field.eval_live`), started from the best of ``starts``.
+
+    Coarse levels (translation half-diagonal at least ``1/cluster_ratio`` times a point
+    cluster's radius) are bounded with voxel clusters of B's points; the quick score (a lower
+    bound of the exact lattice score) is evaluated for the ``score_top`` highest-bound cells
+    there and for every cell below. Final cells get exact scores. ``refine_at_m``: as in the
+    plain search, ICP from the best cells when cells first get smaller than these sizes.
+    More than ``max_cells`` survivors at a level (an ambiguous problem: too few distinctive
+    points for the box, inferred budget) stop the search: returns ``{"aborted": reason}``.
+    """
+    from .score_field import compact_live
+
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    n = len(pts)
+    d_xy = np.hypot(pts[:, 0], pts[:, 1])
+    tree = cKDTree(reference)
+    schedule = lattice.schedule()
+    sizes, sz = [], lattice.n.copy()
+    for k in schedule:
+        sz = sz.copy()
+        sz[k] //= 2
+        sizes.append(sz)
+    clusters = []
+    for v in (1.6, 0.8, 0.4, 0.2, 0.1):
+        rep, cnt, rad = point_clusters(pts, v)
+        if len(rep) < 0.7 * n:
+            clusters.append((float(rad.max()), rep, cnt, rad))
+    n_eval = 0
+    centre_idx = (lattice.n // 2)[None, :]
+    start_poses = lattice.pose(centre_idx)
+    if starts is not None and len(starts):
+        start_poses = np.vstack([start_poses, starts])
+    _, best = _first_hypotheses(pts, lattice, field, tree, start_poses)
+
+    root_off = np.array([0, n], np.int64)
+    root_idx = np.arange(n, dtype=np.int32)
+    live_off = live_idx = None  # None: every cell's parent is the root (all points live)
+    cells = np.zeros((1, 4), np.int64)
+    level_rows, pruned_lse = [], []
+    refined = 0
+    plan = list(zip(schedule, sizes, strict=True)) or [(None, lattice.n.copy())]
+    bounds = scores = np.zeros(1)
+    for li, (k, size) in enumerate(plan):
+        m = len(cells)
+        if k is not None:
+            cells = np.concatenate([cells, cells + np.eye(4, dtype=np.int64)[k] * size[k]])
+        parent = np.concatenate([np.arange(m), np.arange(m)]) if k is not None else np.arange(m)
+        n_eval += len(cells)
+        e = _extent(lattice, size)
+        t_ext = float(np.sqrt(np.sum(e[:3] ** 2)))
+        sin_h = np.sin(min(e[3], np.pi) / 2.0)
+        poses = lattice.pose(cells + size // 2)
+        last = li == len(plan) - 1
+        cl = next((c for c in clusters if c[0] <= cluster_ratio * t_ext), None)
+        if cl is not None and live_off is None and not last:
+            r_max, rep, cnt, rad = cl
+            delta = t_ext + 2.0 * np.hypot(rep[:, 0], rep[:, 1]) * sin_h + rad
+            s_est, bounds = field.evaluate(poses, rep, delta, weight=cnt)
+            scores = np.full(len(cells), np.nan)
+            top = np.argsort(-bounds)[:score_top]
+            scores[top] = field.evaluate(poses[top], pts, bound=False)[0]
+            mass = np.where(np.isnan(scores), s_est, scores)
+            new_live = None
+        else:
+            off, idx = (root_off, root_idx) if live_off is None else (live_off, live_idx)
+            par = np.zeros(len(cells), np.int64) if live_off is None else parent
+            bounds, scores, pre, pre_off, pre_live = _eval_live_chunked(
+                field, poses, par, off, idx, pts, d_xy, e, tight, best)
+            new_live = (pre, pre_off, pre_live)
+            mass = scores
+        if last:
+            keep0 = bounds >= best  # a subset of ``pre``
+            exact = np.full(len(cells), -np.inf)
+            if keep0.any():
+                lo_, li_ = compact_live(keep0[pre], pre_off[:-1], np.diff(pre_off), pre_live)
+                exact[keep0] = field.exact_live(poses[keep0], lo_, li_, pts)
+            scores = np.where(keep0, exact, scores)
+        best = max(best, float(np.nanmax(scores, initial=-np.inf)))
+        cell_m = float(np.max(size * lattice.step * lattice.metric_scale))
+        if refined < len(refine_at_m) and cell_m <= refine_at_m[refined] and not last:
+            while refined < len(refine_at_m) and cell_m <= refine_at_m[refined]:
+                refined += 1
+            top = np.argsort(-bounds)[:n_refine]
+            found = np.array([refine_local(pts, tree, p0) for p0 in poses[top]])
+            idx_f = lattice.nearest_index(found)
+            best = max(best, float(np.max(field.evaluate(lattice.pose(idx_f), pts, bound=False)[0])))
+        keep = bounds >= best
+        vol = float(np.prod(size))
+        pruned_lse.append(_logsumexp(mass[~keep]) + np.log(vol) if (~keep).any() else -np.inf)
+        cells, scores, bounds = cells[keep], scores[keep], bounds[keep]
+        if len(cells) > max_cells and not last:
+            return dict(aborted=f"ambiguous: {len(cells)} cells of {cell_m:.2f} m survive "
+                                f"(> {max_cells}); too little distinctive overlap for the box")
+        if new_live is not None:
+            pre, pre_off, pre_live = new_live
+            live_off, live_idx = compact_live(keep[pre], pre_off[:-1], np.diff(pre_off), pre_live)
+        if keep_levels:
+            level_rows.append((li, size.copy(), cells + size // 2, scores, bounds))
+    return dict(cells=cells, scores=scores, bounds=bounds, best=best, pruned_lse=pruned_lse,
+                level_rows=level_rows, n_eval=n_eval)
+
+
 def _levels_table(lattice: SearchLattice, level_rows) -> pd.DataFrame:
     parts = []
     for li, size, idx, s, b in level_rows:
@@ -482,6 +665,29 @@ def cloud_statistics(poses_deg: np.ndarray, weights: np.ndarray, ref_heading_deg
     return mean, sd
 
 
+def matched_stems(scan_points: np.ndarray, reference_points: np.ndarray, pose_deg, *,
+                  match_m: float = 0.07, cell_m: float = 0.2, min_points: int = 10) -> int:
+    """Distinct features supporting a pose (inferred confidence figure, spec 6.7): the scan's
+    points within ``match_m`` (2 sigma) of the reference after the pose, grouped into horizontal
+    blobs (:func:`~.stem_voting.stem_positions`, ``cell_m``); blobs of at least ``min_points``
+    points (0.5 m of stem at 0.05 m spacing) count. One long stem can match hundreds of points,
+    so the point count alone cannot tell one coincidence from an overlap."""
+    from .stem_voting import stem_positions
+
+    b = np.asarray(scan_points, dtype=float).reshape(-1, 3)
+    if len(b) == 0 or len(reference_points) == 0:
+        return 0
+    h = np.radians(pose_deg[3])
+    c, s_ = np.cos(h), np.sin(h)
+    q = b @ np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]]) + np.asarray(pose_deg[:3])
+    d = cKDTree(reference_points).query(q, distance_upper_bound=match_m)[0]
+    hit = np.isfinite(d)
+    if not hit.any():
+        return 0
+    _, counts, _ = stem_positions(b[hit], cell_m=cell_m, min_points=1)
+    return int(np.sum(counts >= min_points))
+
+
 # --------------------------------------------------------------------------------------------
 # public API
 
@@ -501,6 +707,9 @@ def register_pair(
     beam_width: int = 0,
     keep_levels: bool = True,
     seeds=None,
+    vote: bool = True,
+    tight_bound: bool = True,
+    max_cells: int = 60_000,
 ) -> RegistrationResult:
     """Globally optimal pose of ``scan_points`` (map B) in the frame of ``reference_points``
     (map A) inside the box ``centre +- half_widths`` (dx, dy, dz m, dh deg), spec 6.3-6.7.
@@ -511,9 +720,13 @@ def register_pair(
     (``l = exp(s - s_max)``) selects the cloud weights of JP eq. 6; ``adjacency`` 80 or 8;
     ``hypothesis_separation_m`` (inferred, metric with heading as arc at ``d_bar``) is the
     distance beyond which a disconnected cloud's peak is a secondary hypothesis. ``seeds``
-    (poses, heading deg) and ``beam_width`` (a narrow first pass) only help find a good score
-    early. ``method='thesis'`` is the plain k-d tree algorithm (small problems). Never raises on
-    empty input: returns ``status='failed'`` with a reason.
+    (poses, heading deg), ``vote`` (stem-to-stem voting, :mod:`.stem_voting`) and
+    ``beam_width`` (a narrow first pass, thesis method only) only help find a good score early;
+    ``tight_bound`` enables the per-axis bound at fine levels (speed only). With more than
+    ``max_cells`` surviving cells at a level (fast method; an ambiguous pair) the search stops
+    with ``status='failed'`` and an "ambiguous" reason. ``method='thesis'``
+    is the plain k-d tree algorithm (small problems). Never raises on empty input: returns
+    ``status='failed'`` with a reason.
     """
     from ..params import RegistrationParams
 
@@ -537,16 +750,30 @@ def register_pair(
     model = ScoreModel.from_params(params)
     d_bar = float(np.mean(np.hypot(scan[:, 0], scan[:, 1])))
     lattice = SearchLattice.build(centre, half_widths, params.final_cell_m, d_bar)
-    evaluate = _FieldEvaluator(ref, model) if method == "fast" else _KdEvaluator(ref, model)
     seed_rad = None
     if seeds is not None and len(seeds):
         seed_rad = np.array(seeds, dtype=float).reshape(-1, 4)
         seed_rad[:, 3] = np.radians(seed_rad[:, 3])
-    out = _branch_and_bound(
-        scan, lattice, evaluate, beam_width=beam_width, keep_levels=keep_levels, seeds=seed_rad,
-        ln_k1=model.ln_k1, tree=cKDTree(ref),
-    )
+    if method == "fast":
+        from .score_field import ReferenceField
+        from .stem_voting import vote_alignments
 
+        field = ReferenceField(ref, model)
+        starts = vote_alignments(scan, ref, centre, half_widths) if vote else np.zeros((0, 4))
+        starts[:, 3] = np.radians(starts[:, 3])
+        if seed_rad is not None:
+            starts = np.vstack([seed_rad, starts])
+        out = _fast_search(scan, ref, lattice, model, field, keep_levels=keep_levels,
+                           starts=starts, tight=tight_bound, max_cells=max_cells)
+    else:
+        out = _branch_and_bound(
+            scan, lattice, _KdEvaluator(ref, model), beam_width=beam_width,
+            keep_levels=keep_levels, seeds=seed_rad, ln_k1=model.ln_k1, tree=cKDTree(ref),
+        )
+
+    if "aborted" in out:
+        return RegistrationResult(status="failed", reason=out["aborted"],
+                                  seconds=time.perf_counter() - t0, d_bar_m=d_bar, **base)
     cells, scores = out["cells"], out["scores"]
     n_comp, label = lattice_components(cells, lattice.n, lattice.wrap, adjacency)
     ib = int(np.argmax(scores))
@@ -599,6 +826,7 @@ def register_pair(
         n_cells_evaluated=int(out["n_eval"]),
         final_step=tuple(float(v) for v in step),
         d_bar_m=d_bar,
+        matched_stems=matched_stems(scan, ref, peak),
         levels=_levels_table(lattice, out["level_rows"]) if keep_levels else RegistrationResult("ok").levels,
         hypotheses=hyp,
         **base,

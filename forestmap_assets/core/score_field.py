@@ -2,19 +2,27 @@
 
 Map A (the reference) is indexed once per pair by :class:`ReferenceField`:
 
-* a fine voxel grid (``fine_m``, default 0.1 m) whose every voxel ``v`` lists the candidate points
-  ``C_v = {a : dist(a, box_v) <= min(ub_v, cap)}``, with ``ub_v = min_a maxdist(a, box_v)``. For a
-  query ``q`` in ``box_v`` the nearest point ``a*`` satisfies ``dist(a*, box_v) <= |q - a*| <= ub_v``,
-  so ``min_{C_v} |q - a|`` is the **exact** nearest-neighbour distance whenever it is ``<= cap``,
-  and otherwise ``D(q) > cap`` (where ``ln p(D) == ln k1`` in float64): scores are exact, not
-  interpolated;
-* a coarse grid (``coarse_m``, 0.25 m) of rigorous lower bounds ``min_a dist(a, box_v)`` (point
-  boxes of occupied coarse voxels, capped at ``coarse_cap_m``), used by bounds beyond ``cap``.
+* a **sparse block grid** of fine voxels (``fine_m``, default 0.1 m; blocks of 8^3 voxels, only
+  blocks within ``cap`` of some point of A are stored). Every stored voxel ``v`` lists the
+  candidate points ``C_v = {a : dist(a, box_v) <= min(ub_v, cap)}``, ``ub_v = min_a
+  maxdist(a, box_v)``. For a query ``q`` in ``box_v`` the nearest point ``a*`` satisfies
+  ``dist(a*, box_v) <= |q - a*| <= ub_v``, so ``min_{C_v} |q - a|`` is the **exact**
+  nearest-neighbour distance whenever it is ``<= cap``, and otherwise ``D(q) > cap`` (where
+  ``ln p(D) == ln k1`` in float64): scores are exact, not interpolated. A voxel of a block that
+  is not stored lies farther than ``cap`` from A.
+* a coarse grid (``coarse_m``) of rigorous lower bounds ``min_a dist(a, box_v)`` (point boxes of
+  occupied coarse voxels, capped at ``coarse_cap_m``), used by bounds beyond ``cap``.
 
 The cell bound of spec 6.4 (Eq. 5.11-5.14) is ``sum_i w_i ln p(max(D_lo,i - Delta_i, 0))`` with a
 per-point displacement ``Delta_i`` (translation corner distance + rotation chord
 ``2 d_e sin(phi_h / 2)``); ``ln p`` of the bound is read from a table rounded towards smaller
-distances (an upper bound). Kernels are compiled with numba (an added dependency, for speed).
+distances (an upper bound), and the "quick" score from a table rounded towards larger distances
+(a lower bound of the exact score, enough to raise the best score of a search).
+
+**Live points** (inferred, exact): a point whose bound term is ``ln k1`` over a cell (its lower
+distance bound is ``>= cap`` everywhere in the cell) contributes exactly ``ln k1`` to the score
+and the bound of every sub-cell, so :func:`eval_live` evaluates each cell only on the points
+still live in its parent and returns the child's own live list. Kernels are compiled with numba.
 """
 
 from __future__ import annotations
@@ -25,6 +33,9 @@ import numba as nb
 import numpy as np
 
 from .score import ScoreModel
+
+BLOCK = 8  # voxels per block edge (fixed: index arithmetic uses shifts by 3)
+_FAST = {"nsz", "arcp", "contract", "reassoc"}  # fast math, but inf stays meaningful
 
 
 @nb.njit(cache=True)
@@ -48,10 +59,41 @@ def _box_dists(a, lo, s):
 
 
 @nb.njit(cache=True)
-def _stamp(ref, origin, s, shape, cap, ub, mode, count, idx, fill):
+def _mark_blocks(ref, origin, s, nb_shape, cap):
+    """Block map: -1 for blocks farther than ``cap`` from every point, else a slot number."""
+    bs = s * BLOCK
+    bmap = np.full(nb_shape[0] * nb_shape[1] * nb_shape[2], -1, np.int32)
+    for p in range(ref.shape[0]):
+        lo = np.empty(3, np.int64)
+        hi = np.empty(3, np.int64)
+        for k in range(3):
+            lo[k] = max(int(math.floor((ref[p, k] - cap - origin[k]) / bs)), 0)
+            hi[k] = min(int(math.floor((ref[p, k] + cap - origin[k]) / bs)), nb_shape[k] - 1)
+        for bx in range(lo[0], hi[0] + 1):
+            for by in range(lo[1], hi[1] + 1):
+                for bz in range(lo[2], hi[2] + 1):
+                    bmap[(bx * nb_shape[1] + by) * nb_shape[2] + bz] = 0
+    n = 0
+    for b in range(bmap.shape[0]):
+        if bmap[b] == 0:
+            bmap[b] = n
+            n += 1
+    return bmap, n
+
+
+@nb.njit(cache=True, inline="always", fastmath=_FAST)
+def _slot(ix, iy, iz, bmap, nb_shape):
+    """Voxel slot of fine voxel (ix, iy, iz) in the block store, -1 when its block is absent."""
+    b = bmap[((ix >> 3) * nb_shape[1] + (iy >> 3)) * nb_shape[2] + (iz >> 3)]
+    if b < 0:
+        return -1
+    return b * 512 + (((ix & 7) << 6) | ((iy & 7) << 3) | (iz & 7))
+
+
+@nb.njit(cache=True)
+def _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, mode, count, idx, fill, margin):
     """One pass over the voxels within ``cap`` of each point: mode 0 sets ``ub``, mode 1 counts
     candidates, mode 2 writes them."""
-    nx, ny, nz = shape[0], shape[1], shape[2]
     r = int(math.ceil(cap / s)) + 1
     lo = np.empty(3)
     for p in range(ref.shape[0]):
@@ -59,18 +101,20 @@ def _stamp(ref, origin, s, shape, cap, ub, mode, count, idx, fill):
         cx = int((a[0] - origin[0]) / s)
         cy = int((a[1] - origin[1]) / s)
         cz = int((a[2] - origin[2]) / s)
-        for ix in range(max(cx - r, 0), min(cx + r + 1, nx)):
+        for ix in range(max(cx - r, 0), min(cx + r + 1, shape[0])):
             lo[0] = origin[0] + ix * s
-            for iy in range(max(cy - r, 0), min(cy + r + 1, ny)):
+            for iy in range(max(cy - r, 0), min(cy + r + 1, shape[1])):
                 lo[1] = origin[1] + iy * s
-                for iz in range(max(cz - r, 0), min(cz + r + 1, nz)):
+                for iz in range(max(cz - r, 0), min(cz + r + 1, shape[2])):
                     lo[2] = origin[2] + iz * s
-                    v = (ix * ny + iy) * nz + iz
                     dmin, dmax = _box_dists(a, lo, s)
+                    if dmin > cap:
+                        continue
+                    v = _slot(ix, iy, iz, bmap, nb_shape)
                     if mode == 0:
-                        if dmin <= cap and dmax < ub[v]:
+                        if dmax < ub[v]:
                             ub[v] = dmax
-                    elif dmin <= min(ub[v], cap):
+                    elif dmin <= ub[v] + margin:
                         if mode == 1:
                             count[v + 1] += 1
                         else:
@@ -79,20 +123,43 @@ def _stamp(ref, origin, s, shape, cap, ub, mode, count, idx, fill):
 
 
 @nb.njit(cache=True)
-def _build_candidates(ref, origin, s, shape, cap):
-    """CSR candidate lists per fine voxel (see module docstring)."""
-    nvox = shape[0] * shape[1] * shape[2]
+def _build_candidates(ref, origin, s, shape, nb_shape, bmap, n_blocks, cap, margin):
+    """CSR candidate lists per stored fine voxel (see module docstring)."""
+    nvox = n_blocks * 512
     ub = np.full(nvox, np.inf)
     count = np.zeros(nvox + 1, np.int64)
     idx = np.empty(0, np.int32)
     fill = np.empty(0, np.int64)
-    _stamp(ref, origin, s, shape, cap, ub, 0, count, idx, fill)
-    _stamp(ref, origin, s, shape, cap, ub, 1, count, idx, fill)
+    _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, 0, count, idx, fill, margin)
+    _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, 1, count, idx, fill, margin)
     for v in range(nvox):
         count[v + 1] += count[v]
     fill = count[:-1].copy()
     idx = np.empty(count[nvox], np.int32)
-    _stamp(ref, origin, s, shape, cap, ub, 2, count, idx, fill)
+    _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, 2, count, idx, fill, margin)
+    return count, idx, np.minimum(ub + margin, cap).astype(np.float32)
+
+
+@nb.njit(cache=True)
+def _build_buckets(ref, origin, s, nb_shape, bmap, n_blocks):
+    """CSR of the points inside each stored fine voxel (for the per-axis bound's range search)."""
+    nvox = n_blocks * 512
+    count = np.zeros(nvox + 1, np.int64)
+    slots = np.empty(ref.shape[0], np.int64)
+    for p in range(ref.shape[0]):
+        ix = int((ref[p, 0] - origin[0]) / s)
+        iy = int((ref[p, 1] - origin[1]) / s)
+        iz = int((ref[p, 2] - origin[2]) / s)
+        v = _slot(ix, iy, iz, bmap, nb_shape)
+        slots[p] = v
+        count[v + 1] += 1
+    for v in range(nvox):
+        count[v + 1] += count[v]
+    fill = count[:-1].copy()
+    idx = np.empty(ref.shape[0], np.int32)
+    for p in range(ref.shape[0]):
+        idx[fill[slots[p]]] = p
+        fill[slots[p]] += 1
     return count, idx
 
 
@@ -119,15 +186,17 @@ def _build_coarse_lb(box_lo, box_hi, origin, s, shape, cap):
     return lb
 
 
-@nb.njit(cache=True, inline="always")
-def _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, cand_off, cand_idx, cap):
+@nb.njit(cache=True, inline="always", fastmath=_FAST)
+def _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cap):
     """Exact nearest distance if ``<= cap``, else ``inf`` (module docstring)."""
     ix = int(math.floor((qx - f_origin[0]) / f_s))
     iy = int(math.floor((qy - f_origin[1]) / f_s))
     iz = int(math.floor((qz - f_origin[2]) / f_s))
     if ix < 0 or iy < 0 or iz < 0 or ix >= f_shape[0] or iy >= f_shape[1] or iz >= f_shape[2]:
         return np.inf
-    v = (ix * f_shape[1] + iy) * f_shape[2] + iz
+    v = _slot(ix, iy, iz, bmap, nb_shape)
+    if v < 0:
+        return np.inf
     best = np.inf
     for c in range(cand_off[v], cand_off[v + 1]):
         j = cand_idx[c]
@@ -141,7 +210,49 @@ def _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, cand_off, cand_idx, cap):
     return d if d <= cap else np.inf
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", fastmath=_FAST)
+def _nearest_box(qx, qy, qz, lip, ex, ey, ez, ref, f_origin, f_s, f_shape, nb_shape, bmap,
+                 cand_off, cand_idx, ub, cap):
+    """Exact nearest distance ``d`` (``inf`` beyond ``cap``) and, in the same candidate loop, a
+    lower bound of the nearest distance over the displacement box ``|p - q|_a <= (ex, ey, ez)``,
+    ``|p - q| <= lip`` (spec 6.4 "tighter bound", inferred form). Points farther than
+    ``rho = d + 2 lip`` from ``q`` cannot be nearest anywhere in the box; when ``rho <= ub_v``
+    they are all candidates of ``q``'s voxel, so the per-axis bound over the candidates is
+    rigorous; otherwise the Lipschitz bound ``d - lip`` is returned."""
+    ix = int(math.floor((qx - f_origin[0]) / f_s))
+    iy = int(math.floor((qy - f_origin[1]) / f_s))
+    iz = int(math.floor((qz - f_origin[2]) / f_s))
+    if ix < 0 or iy < 0 or iz < 0 or ix >= f_shape[0] or iy >= f_shape[1] or iz >= f_shape[2]:
+        return np.inf, np.inf
+    v = _slot(ix, iy, iz, bmap, nb_shape)
+    if v < 0:
+        return np.inf, np.inf
+    best = np.inf
+    boxb = np.inf
+    for c in range(cand_off[v], cand_off[v + 1]):
+        j = cand_idx[c]
+        dx = abs(qx - ref[j, 0])
+        dy = abs(qy - ref[j, 1])
+        dz = abs(qz - ref[j, 2])
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < best:
+            best = d2
+        gx = max(dx - ex, 0.0)
+        gy = max(dy - ey, 0.0)
+        gz = max(dz - ez, 0.0)
+        g2 = gx * gx + gy * gy + gz * gz
+        if g2 < boxb:
+            boxb = g2
+    d = math.sqrt(best)
+    if d > cap:
+        return np.inf, np.inf
+    low = d - lip
+    if d + 2.0 * lip <= ub[v]:
+        low = max(low, math.sqrt(boxb))
+    return d, low
+
+
+@nb.njit(cache=True, inline="always", fastmath=_FAST)
 def _coarse_lower(qx, qy, qz, c_origin, c_s, c_shape, lb, bb_lo, bb_hi):
     ix = int(math.floor((qx - c_origin[0]) / c_s))
     iy = int(math.floor((qy - c_origin[1]) / c_s))
@@ -155,7 +266,8 @@ def _coarse_lower(qx, qy, qz, c_origin, c_s, c_shape, lb, bb_lo, bb_hi):
 
 
 @nb.njit(cache=True, inline="always")
-def _box_lower(qx, qy, qz, d, lip, ex, ey, ez, ref, f_origin, f_s, f_shape, b_off, b_idx, cap):
+def _box_lower(qx, qy, qz, d, lip, ex, ey, ez, ref, f_origin, f_s, f_shape, nb_shape, bmap,
+               b_off, b_idx, cap):
     """Tighter lower bound of the nearest distance over a cell (spec 6.4 "tighter bound", inferred
     form): every point within ``rho`` of the evaluation position is bounded per axis by the cell's
     displacement box ``(ex, ey, ez)`` and by the Lipschitz radius ``lip``; points farther than
@@ -174,33 +286,36 @@ def _box_lower(qx, qy, qz, d, lip, ex, ey, ez, ref, f_origin, f_s, f_shape, b_of
     rho2 = rho * rho
     for ix in range(x0, x1 + 1):
         for iy in range(y0, y1 + 1):
-            v0 = (ix * f_shape[1] + iy) * f_shape[2]
-            for c in range(b_off[v0 + z0], b_off[v0 + z1 + 1]):
-                j = b_idx[c]
-                vx = abs(ref[j, 0] - qx)
-                vy = abs(ref[j, 1] - qy)
-                vz = abs(ref[j, 2] - qz)
-                n2 = vx * vx + vy * vy + vz * vz
-                if n2 > rho2:
+            for iz in range(z0, z1 + 1):
+                v = _slot(ix, iy, iz, bmap, nb_shape)
+                if v < 0:
                     continue
-                gx = max(vx - ex, 0.0)
-                gy = max(vy - ey, 0.0)
-                gz = max(vz - ez, 0.0)
-                low = max(math.sqrt(gx * gx + gy * gy + gz * gz), math.sqrt(n2) - lip)
-                if low < out:
-                    out = low
+                for c in range(b_off[v], b_off[v + 1]):
+                    j = b_idx[c]
+                    vx = abs(ref[j, 0] - qx)
+                    vy = abs(ref[j, 1] - qy)
+                    vz = abs(ref[j, 2] - qz)
+                    n2 = vx * vx + vy * vy + vz * vz
+                    if n2 > rho2:
+                        continue
+                    gx = max(vx - ex, 0.0)
+                    gy = max(vy - ey, 0.0)
+                    gz = max(vz - ez, 0.0)
+                    low = max(math.sqrt(gx * gx + gy * gy + gz * gz), math.sqrt(n2) - lip)
+                    if low < out:
+                        out = low
     return max(out, 0.0)
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, fastmath=_FAST)
 def _eval_cells(
     poses, pts, delta, rot, e_box, box_max, weight, do_score, do_bound,
-    ref, f_origin, f_s, f_shape, cand_off, cand_idx, b_off, b_idx, cap,
+    ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, b_off, b_idx, cap,
     c_origin, c_s, c_shape, lb, bb_lo, bb_hi,
     k1, ln_k1, k2n, inv2s2, table, inv_step,
     out_score, out_bound, active,
 ):
-    """Score at each cell's pose and bound over the cell (spec 6.4, Eq. 5.11-5.12)."""
+    """Exact score at each cell's pose and bound over the cell (spec 6.4, Eq. 5.11-5.12)."""
     n_cells = poses.shape[0]
     n = pts.shape[0]
     nt = table.shape[0]
@@ -214,7 +329,8 @@ def _eval_cells(
             qx = ch * pts[i, 0] - sh * pts[i, 1] + tx
             qy = sh * pts[i, 0] + ch * pts[i, 1] + ty
             qz = pts[i, 2] + tz
-            d = _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, cand_off, cand_idx, cap)
+            d = _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off,
+                         cand_idx, cap)
             if do_score:
                 if d <= cap:
                     s_acc += weight[i] * math.log(k1 + k2n * math.exp(-d * d * inv2s2))
@@ -227,7 +343,7 @@ def _eval_cells(
                 elif delta[i] <= box_max and d - delta[i] < cap:
                     r = _box_lower(
                         qx, qy, qz, d, delta[i], e_box[0] + rot[i], e_box[1] + rot[i], e_box[2],
-                        ref, f_origin, f_s, f_shape, b_off, b_idx, cap,
+                        ref, f_origin, f_s, f_shape, nb_shape, bmap, b_off, b_idx, cap,
                     )
                 else:
                     r = d - delta[i]
@@ -242,11 +358,115 @@ def _eval_cells(
         out_bound[c] = b_acc
 
 
+@nb.njit(cache=True, parallel=True, fastmath=_FAST)
+def _eval_live(
+    poses, parent, live_off, live_idx, n_total, pts, d_xy, t_ext, sin_h, box_max, e_box,
+    ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, ub, cap,
+    c_origin, c_s, c_shape, lb, bb_lo, bb_hi,
+    ln_k1, table_hi, table_lo, inv_step,
+    out_bound, out_score, out_off, out_cnt, out_live,
+):
+    """Bound over each cell and a lower bound of the score at its pose, on the live points of
+    its parent cell; writes the cell's own live points (module docstring, spec 6.4)."""
+    n_cells = poses.shape[0]
+    nt = table_hi.shape[0]
+    for c in nb.prange(n_cells):
+        p = parent[c]
+        ch = math.cos(poses[c, 3])
+        sh = math.sin(poses[c, 3])
+        tx, ty, tz = poses[c, 0], poses[c, 1], poses[c, 2]
+        n_live = live_off[p + 1] - live_off[p]
+        dead = n_total - n_live
+        s_acc = dead * ln_k1
+        b_acc = dead * ln_k1
+        w = out_off[c]
+        for k in range(live_off[p], live_off[p + 1]):
+            i = live_idx[k]
+            qx = ch * pts[i, 0] - sh * pts[i, 1] + tx
+            qy = sh * pts[i, 0] + ch * pts[i, 1] + ty
+            qz = pts[i, 2] + tz
+            rot = 2.0 * d_xy[i] * sin_h
+            delta = t_ext + rot
+            if delta <= box_max:
+                d, r = _nearest_box(qx, qy, qz, delta, e_box[0] + rot, e_box[1] + rot, e_box[2],
+                                    ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off,
+                                    cand_idx, ub, cap)
+            else:
+                d = _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off,
+                             cand_idx, cap)
+                r = d - delta
+            if d > cap:
+                s_acc += ln_k1
+                r = max(cap, _coarse_lower(qx, qy, qz, c_origin, c_s, c_shape, lb, bb_lo, bb_hi))
+                r -= delta
+            else:
+                s_acc += table_lo[min(int(d * inv_step) + 1, nt - 1)]
+            if r >= cap:
+                b_acc += ln_k1
+                continue
+            out_live[w] = i
+            w += 1
+            if r <= 0.0:
+                b_acc += table_hi[0]
+            else:
+                b_acc += table_hi[min(int(r * inv_step), nt - 1)]
+        out_cnt[c] = w - out_off[c]
+        out_bound[c] = b_acc
+        out_score[c] = s_acc
+
+
+@nb.njit(cache=True, parallel=True, fastmath=_FAST)
+def _exact_live(
+    poses, live_off, live_idx, n_total, pts,
+    ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cap,
+    k1, ln_k1, k2n, inv2s2, out_score,
+):
+    """Exact scores of cells from their live points (dead points score exactly ``ln k1``)."""
+    for c in nb.prange(poses.shape[0]):
+        ch = math.cos(poses[c, 3])
+        sh = math.sin(poses[c, 3])
+        tx, ty, tz = poses[c, 0], poses[c, 1], poses[c, 2]
+        acc = (n_total - (live_off[c + 1] - live_off[c])) * ln_k1
+        for k in range(live_off[c], live_off[c + 1]):
+            i = live_idx[k]
+            qx = ch * pts[i, 0] - sh * pts[i, 1] + tx
+            qy = sh * pts[i, 0] + ch * pts[i, 1] + ty
+            qz = pts[i, 2] + tz
+            d = _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off,
+                         cand_idx, cap)
+            if d <= cap:
+                acc += math.log(k1 + k2n * math.exp(-d * d * inv2s2))
+            else:
+                acc += ln_k1
+        out_score[c] = acc
+
+
+@nb.njit(cache=True)
+def _compact(keep, off, cnt, live):
+    """CSR of the live lists of the kept cells."""
+    n = 0
+    for c in range(keep.shape[0]):
+        if keep[c]:
+            n += cnt[c]
+    new_off = np.zeros(int(keep.sum()) + 1, np.int64)
+    new_live = np.empty(n, live.dtype)
+    j = 0
+    w = 0
+    for c in range(keep.shape[0]):
+        if keep[c]:
+            new_live[w : w + cnt[c]] = live[off[c] : off[c] + cnt[c]]
+            w += cnt[c]
+            new_off[j + 1] = w
+            j += 1
+    return new_off, new_live
+
+
 class ReferenceField:
     """Nearest-neighbour index of map A for exact scores and rigorous bounds (module docstring).
 
-    ``fine_m`` (0.1 m), ``coarse_m`` (0.25 m), ``coarse_cap_m`` (3 m) and ``table_step_m``
-    (0.1 mm) are (inferred) implementation parameters; they change speed, never the result.
+    ``fine_m`` (0.1 m), ``coarse_m`` (0.3 m), ``coarse_cap_m`` (3 m), ``table_step_m`` (0.1 mm)
+    and ``box_max_m`` (largest displacement for which the per-axis bound is tried, 0.2 m) are
+    (inferred) implementation parameters; they change speed, never the result.
     """
 
     def __init__(
@@ -254,10 +474,11 @@ class ReferenceField:
         reference: np.ndarray,
         model: ScoreModel,
         fine_m: float = 0.1,
-        coarse_m: float = 0.25,
+        coarse_m: float = 0.3,
         coarse_cap_m: float = 3.0,
         table_step_m: float = 0.0001,
         box_max_m: float = 0.2,
+        list_margin_m: float = 0.05,
     ):
         ref = np.ascontiguousarray(np.asarray(reference, dtype=np.float64).reshape(-1, 3))
         if len(ref) == 0:
@@ -270,17 +491,17 @@ class ReferenceField:
         margin = self.cap + fine_m
         self.f_s = float(fine_m)
         self.f_origin = self.bb_lo - margin
-        self.f_shape = np.ceil((self.bb_hi + margin - self.f_origin) / fine_m).astype(np.int64) + 1
-        self.cand_off, self.cand_idx = _build_candidates(
-            ref, self.f_origin, self.f_s, self.f_shape, self.cap
+        f_shape = np.ceil((self.bb_hi + margin - self.f_origin) / fine_m).astype(np.int64) + 1
+        self.nb_shape = (f_shape + BLOCK - 1) // BLOCK
+        self.f_shape = self.nb_shape * BLOCK
+        self.bmap, self.n_blocks = _mark_blocks(ref, self.f_origin, self.f_s, self.nb_shape, self.cap)
+        self.cand_off, self.cand_idx, self.ub = _build_candidates(
+            ref, self.f_origin, self.f_s, self.f_shape, self.nb_shape, self.bmap, self.n_blocks,
+            self.cap, float(list_margin_m),
         )
-        # points bucketed by fine voxel (CSR), for the per-axis bound's range search
-        fk = np.floor((ref - self.f_origin) / fine_m).astype(np.int64)
-        flin = (fk[:, 0] * self.f_shape[1] + fk[:, 1]) * self.f_shape[2] + fk[:, 2]
-        self.b_idx = np.argsort(flin, kind="stable").astype(np.int32)
-        nvox = int(np.prod(self.f_shape))
-        self.b_off = np.zeros(nvox + 1, np.int64)
-        np.cumsum(np.bincount(flin, minlength=nvox), out=self.b_off[1:])
+        self.b_off, self.b_idx = _build_buckets(
+            ref, self.f_origin, self.f_s, self.nb_shape, self.bmap, self.n_blocks
+        )
         self.box_max_m = float(box_max_m)
         # coarse lower-bound grid from the point boxes of occupied coarse voxels
         self.c_s = float(coarse_m)
@@ -299,8 +520,16 @@ class ReferenceField:
         )
         self.table_step = float(table_step_m)
         n_tab = int(np.ceil(self.cap / table_step_m)) + 2
-        self.table = model.log_p(np.arange(n_tab) * table_step_m)
+        dist = np.arange(n_tab) * table_step_m
+        # ln p at step k: read at floor(d / step) it bounds ln p(d) from above (bounds), read at
+        # floor(d / step) + 1 from below (quick scores)
+        self.table = model.log_p(dist)
         self.table[-1] = model.ln_k1
+
+    # geometry arguments shared by the kernels
+    def _geo(self):
+        return (self.ref, self.f_origin, self.f_s, self.f_shape, self.nb_shape, self.bmap,
+                self.cand_off, self.cand_idx)
 
     def evaluate(
         self,
@@ -314,8 +543,8 @@ class ReferenceField:
         bound: bool = True,
         active: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Scores ``sum_i w_i ln p(D_i(T))`` at ``poses`` (k, 4: dx, dy, dz, dh in radians) and
-        bounds ``sum_i w_i ln p(max(D_i - delta_i, 0))`` (spec 6.4); NaN where not asked.
+        """Exact scores ``sum_i w_i ln p(D_i(T))`` at ``poses`` (k, 4: dx, dy, dz, dh in radians)
+        and bounds ``sum_i w_i ln p(max(D_i - delta_i, 0))`` (spec 6.4); NaN where not asked.
 
         With ``rot`` (per-point rotation chord) and ``e_box`` (translation half-extents of the
         cell about the pose) the bound of points with ``delta_i <= box_max_m`` uses the tighter
@@ -338,10 +567,53 @@ class ReferenceField:
         m = self.model
         _eval_cells(
             poses, pts, delta, rot, e_box, box_max, weight, bool(score), bool(bound),
-            self.ref, self.f_origin, self.f_s, self.f_shape, self.cand_off, self.cand_idx,
-            self.b_off, self.b_idx, self.cap,
+            *self._geo(), self.b_off, self.b_idx, self.cap,
             self.c_origin, self.c_s, self.c_shape, self.lb, self.bb_lo, self.bb_hi,
             m.k1, m.ln_k1, m.k2 / (m.sigma_m * np.sqrt(2 * np.pi)), 0.5 / m.sigma_m**2,
             self.table, 1.0 / self.table_step, out_s, out_b, flags,
         )
         return out_s, out_b
+
+    def eval_live(self, poses, parent, live_off, live_idx, pts, d_xy, e, tight: bool):
+        """Cells ``poses`` (radians) with largest offsets ``e`` (4,) to their faces, each
+        evaluated on the live points of ``parent`` (CSR ``live_off``/``live_idx``).
+
+        Returns (bound, quick score lower bound, child live CSR offsets, child live points).
+        ``tight`` enables the per-axis bound for displacements up to ``box_max_m``."""
+        n_cells = len(poses)
+        counts = np.diff(live_off)[parent]
+        out_off = np.zeros(n_cells + 1, np.int64)
+        np.cumsum(counts, out=out_off[1:])
+        out_live = np.empty(int(out_off[-1]), np.int32)
+        out_cnt = np.zeros(n_cells, np.int64)
+        out_b = np.empty(n_cells)
+        out_s = np.empty(n_cells)
+        t_ext = float(np.sqrt(np.sum(np.asarray(e[:3]) ** 2)))
+        sin_h = float(np.sin(min(e[3], np.pi) / 2.0))
+        m = self.model
+        _eval_live(
+            np.ascontiguousarray(poses, dtype=np.float64), parent.astype(np.int64), live_off,
+            live_idx, len(pts), pts, d_xy, t_ext, sin_h, self.box_max_m if tight else -1.0,
+            np.ascontiguousarray(e[:3], dtype=np.float64),
+            *self._geo(), self.ub, self.cap,
+            self.c_origin, self.c_s, self.c_shape, self.lb, self.bb_lo, self.bb_hi,
+            m.ln_k1, self.table, self.table, 1.0 / self.table_step,
+            out_b, out_s, out_off, out_cnt, out_live,
+        )
+        return out_b, out_s, out_off, out_cnt, out_live
+
+    def exact_live(self, poses, live_off, live_idx, pts) -> np.ndarray:
+        """Exact scores of cells at ``poses`` from their own live lists."""
+        m = self.model
+        out = np.empty(len(poses))
+        _exact_live(
+            np.ascontiguousarray(poses, dtype=np.float64), live_off, live_idx, len(pts), pts,
+            *self._geo(), self.cap, m.k1, m.ln_k1, m.k2 / (m.sigma_m * np.sqrt(2 * np.pi)),
+            0.5 / m.sigma_m**2, out,
+        )
+        return out
+
+
+def compact_live(keep: np.ndarray, off: np.ndarray, cnt: np.ndarray, live: np.ndarray):
+    """Live CSR of the kept cells (``keep`` bool)."""
+    return _compact(np.ascontiguousarray(keep, dtype=np.bool_), off, cnt, live)

@@ -1,0 +1,122 @@
+"""Registration pairs from simulated forest campaigns (real submaps, truth poses, shared stems).
+
+Used by ``bench_registration.py``. For a campaign written by ``forestmap simulate`` it computes
+each scan's sub-map with the pipeline's own core functions (range image -> segments -> circle
+models -> cylinder segments -> submap, the chain of the ``submaps`` asset), caches them in
+``<campaign>/bench_submaps.npz``, and lists every scan pair with its true relative pose (location
+of ``scan`` in the levelled frame of ``reference``, spec 6.1) and the number of stems visible in
+both scans (truth labels, same rule as ``sim.campaign.visible_trees``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from forestmap_assets.core.geometry import relative_pose
+
+
+def campaign_submaps(folder: Path, progress=print) -> dict[str, np.ndarray]:
+    """Sub-map points (n, 3) per scan id, computed once and cached next to the campaign."""
+    folder = Path(folder)
+    cache = folder / "bench_submaps.npz"
+    if cache.exists():
+        with np.load(cache) as z:
+            return {k: z[k] for k in z.files}
+    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.core.circles import fit_circle_models
+    from forestmap_assets.core.cylinders import assemble_cylinders
+    from forestmap_assets.core.segments import segment_scan_lines
+    from forestmap_assets.core.submaps import build_submap, submap_points
+    from forestmap_assets.io.readers import read_scan
+
+    camp = load_campaign(folder)
+    p = camp.params
+    out = {}
+    for entry in camp.scans:
+        image = read_scan(entry.path, angular_step_deg=camp.angular_step_deg, tilt_deg=entry.tilt_deg)
+        seg = segment_scan_lines(image, p.segmentation)
+        circ = fit_circle_models(image, seg, p.circles, p.segmentation)
+        final = circ[circ["iteration"] == circ["iteration"].max()] if len(circ) else circ
+        cyl = assemble_cylinders(final, p.cylinders)
+        out[entry.id] = submap_points(build_submap(cyl, None, p.submaps.spacing_m))
+        progress(f"  {folder.name}/{entry.id}: {len(cyl)} cylinders, {len(out[entry.id])} points")
+    np.savez(cache, **out)
+    return out
+
+
+def visible_stems(folder: Path, scan_id: str, pose, max_range_m: float = 20.0,
+                  min_length_m: float = 1.0, max_gap_m: float = 0.25) -> set[int]:
+    """Tree ids whose stem is visible in scan ``scan_id`` (truth labels; the simulator's rule)."""
+    folder = Path(folder)
+    with np.load(folder / "truth" / "labels" / f"{scan_id}.npz") as lab, \
+            np.load(folder / "scans" / f"{scan_id}.npz") as sc:
+        kind, tree = lab["kind"], lab["tree_id"]
+        rng = sc["range"]
+        el = np.radians(sc["elevation_deg"])[:, None]
+        az = np.radians(sc["azimuth_deg"])[None, :]
+    sel = (kind == 1) & np.isfinite(rng) & (rng <= max_range_m)
+    z = (rng * np.sin(el) * np.ones_like(az))[sel] + pose[2]
+    t = tree[sel].astype(np.int64)
+    stems = pd.read_csv(folder / "truth" / "stems.csv").set_index("tree_id")
+    h = z - stems["z_base"].reindex(t).to_numpy()
+    order = np.lexsort((h, t))
+    t, h = t[order], h[order]
+    dh = np.diff(h)
+    covered = np.where((t[1:] == t[:-1]) & (dh <= max_gap_m), dh, 0.0)
+    length = np.bincount(t[1:], weights=covered, minlength=t.max() + 1)
+    return set(np.flatnonzero(length >= min_length_m).tolist())
+
+
+def campaign_pairs(folder: Path) -> pd.DataFrame:
+    """Every unordered scan pair ``scan, reference, truth (dx, dy, dz, dh), shared_stems``."""
+    folder = Path(folder)
+    poses = pd.read_csv(folder / "truth" / "poses.csv").set_index("scan")
+    ids = list(poses.index)
+    vis = {s: visible_stems(folder, s, poses.loc[s].to_numpy(float)) for s in ids}
+    rows = []
+    for i, ref in enumerate(ids):
+        for scan in ids[i + 1:]:
+            rel = relative_pose(poses.loc[scan].to_numpy(float), poses.loc[ref].to_numpy(float))
+            rows.append(dict(campaign=folder.name, scan=scan, reference=ref, tx=rel[0], ty=rel[1],
+                             tz=rel[2], th=rel[3], shared_stems=len(vis[scan] & vis[ref])))
+    return pd.DataFrame(rows)
+
+
+def stems_in_scan_frame(folder: Path, scan_id: str) -> pd.DataFrame:
+    """Truth stem base positions (``tree_id, x, y``) in the levelled frame of ``scan_id``."""
+    folder = Path(folder)
+    poses = pd.read_csv(folder / "truth" / "poses.csv").set_index("scan")
+    x, y, _, h = poses.loc[scan_id].to_numpy(float)
+    stems = pd.read_csv(folder / "truth" / "stems.csv")
+    c, s = np.cos(np.radians(h)), np.sin(np.radians(h))
+    dx, dy = stems["x_base"] - x, stems["y_base"] - y
+    return pd.DataFrame({"tree_id": stems["tree_id"], "x": c * dx + s * dy, "y": -s * dx + c * dy})
+
+
+def sector_crop(folder: Path, scan: str, reference: str, points: np.ndarray, width_deg: float = 50.0,
+                max_range_m: float = 15.0, shared_range=(1, 4), min_points: int = 150):
+    """A low-overlap variant of a pair: ``scan``'s sub-map points within an azimuth sector of
+    ``width_deg`` (and ``max_range_m``) chosen so that it holds ``shared_range`` of the stems
+    visible in both scans. Returns (points, shared stems in the sector) or None."""
+    folder = Path(folder)
+    poses = pd.read_csv(folder / "truth" / "poses.csv").set_index("scan")
+    shared = (visible_stems(folder, scan, poses.loc[scan].to_numpy(float))
+              & visible_stems(folder, reference, poses.loc[reference].to_numpy(float)))
+    st = stems_in_scan_frame(folder, scan)
+    st = st[st.tree_id.isin(shared)]
+    az_st = np.degrees(np.arctan2(st.y, st.x))
+    r_st = np.hypot(st.x, st.y)
+    az_p = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    r_p = np.hypot(points[:, 0], points[:, 1])
+    for centre in np.arange(-180.0, 180.0, 10.0):
+        in_st = (np.abs((az_st - centre + 180) % 360 - 180) <= width_deg / 2) & (r_st <= max_range_m)
+        k = int(in_st.sum())
+        if not shared_range[0] <= k <= shared_range[1]:
+            continue
+        sel = (np.abs((az_p - centre + 180) % 360 - 180) <= width_deg / 2) & (r_p <= max_range_m)
+        if sel.sum() >= min_points:
+            return points[sel], k
+    return None
