@@ -29,6 +29,7 @@ def _pair(text: str) -> tuple[float, float]:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="forestmap", description="Registered, checked 3-D forest maps from TLS scans.")
     p.add_argument("--quiet", "-q", action="store_true", help="print only errors and final paths")
+    p.add_argument("--debug", action="store_true", help="on an error, show the traceback, not one line")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="write a synthetic campaign and its ground truth")
@@ -47,6 +48,10 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("campaign", type=Path)
     r.add_argument("--out", type=Path, default=None)
     r.add_argument("--executor", choices=["in_process", "multiprocess", "dask"], default="in_process")
+    r.add_argument("--cloud-spacing", type=float, default=0.05, metavar="M",
+                   help="voxel size (m) of the registered point cloud cloud.laz / cloud.ply (0: every point)")
+    r.add_argument("--no-cloud", action="store_true", help="do not write cloud.laz / cloud.ply")
+    r.add_argument("--no-report", action="store_true", help="do not write map.png / report.html")
 
     v = sub.add_parser("solve", help="optimal map and residuals from a table of pairwise observations")
     v.add_argument("observations", type=Path)
@@ -96,9 +101,14 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_run(args) -> int:
+    from .progress import Progress, use
     from .runner import run_campaign
 
-    summary = run_campaign(args.campaign, executor=args.executor, progress=lambda m: _say(args, m))
+    if args.cloud_spacing < 0:
+        raise UsageError(f"--cloud-spacing: expected a size >= 0 m, got {args.cloud_spacing:g}")
+    progress = Progress(quiet=args.quiet)
+    with use(progress):  # steps running in this process (in_process executor) report into it
+        summary = run_campaign(args.campaign, executor=args.executor, progress=progress)
     if summary.not_built:
         _say(args, f"not yet built in this version of forestmap: {', '.join(summary.not_built)}")
     if summary.failures:
@@ -112,7 +122,8 @@ def cmd_run(args) -> int:
         return 0
     from .exports import write_exports
 
-    written = write_exports(summary.campaign, out)
+    written = write_exports(summary.campaign, out, cloud_spacing_m=None if args.no_cloud else args.cloud_spacing,
+                            picture=not args.no_report, report=not args.no_report, progress=progress)
     print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
     _say(args, f"done in {summary.seconds:.1f} s")
     return 0
@@ -171,6 +182,8 @@ COMMANDS = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    from .progress import one_line
+
     args = _parser().parse_args(argv)
     warnings.filterwarnings("ignore")
     logging.getLogger("dagster").setLevel(logging.WARNING)
@@ -181,9 +194,15 @@ def main(argv: list[str] | None = None) -> int:
         print("forestmap: interrupted", file=sys.stderr)
         return 130
     except (UsageError, ValueError, OSError) as exc:
-        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"forestmap: {text}", file=sys.stderr)
+        if args.debug:
+            raise
+        print(f"forestmap: {one_line(exc)}", file=sys.stderr)
         return 2
+    except Exception as exc:  # anything else is still one line; --debug or FORESTMAP_DEBUG=1 shows it all
+        if args.debug or os.environ.get("FORESTMAP_DEBUG"):
+            raise
+        print(f"forestmap: {one_line(exc)}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

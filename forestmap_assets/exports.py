@@ -1,10 +1,17 @@
 """The files ``forestmap run`` writes (DESIGN.md section 4), read from the asset store.
 
-Every file is written under a temporary name and renamed into place.
+Beyond the CSVs of section 4: ``elevation.png``
+(:func:`~forestmap_assets.figures.elevation_figure`),
+``map.png`` (:func:`~forestmap_assets.render.render_map`), ``report.html``
+(:mod:`~forestmap_assets.report`), the registered point cloud of the campaign as ``cloud.laz``
+and ``cloud.ply`` (thinned to ``cloud_spacing_m``, each point with the index of its ``scan``;
+:mod:`~forestmap_assets.core.point_cloud`) and the tree list as ``trees.geojson`` (local
+coordinates, for GIS users). Every file is written under a temporary name and renamed into place.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import uuid
 from collections.abc import Callable
@@ -16,14 +23,65 @@ import pandas as pd
 from .access import load_asset
 from .campaign import Campaign
 
-POSES_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
-REGISTRATION_COLUMNS = [
-    "scan", "reference", "dx", "dy", "dz", "dheading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg",
-    "peak_dx", "peak_dy", "peak_dz", "peak_dheading_deg", "log_score", "n_points", "seconds", "status", "reason",
+POSES_COLUMNS = [
+    "scan",
+    "x",
+    "y",
+    "z",
+    "heading_deg",
+    "sd_x",
+    "sd_y",
+    "sd_z",
+    "sd_heading_deg",
+    "registered",
 ]
-RESIDUAL_COLUMNS = ["scan", "reference", "ex", "ey", "ez", "eheading_deg", "rx", "ry", "rz", "rheading", "verdict"]
+REGISTRATION_COLUMNS = [
+    "scan",
+    "reference",
+    "dx",
+    "dy",
+    "dz",
+    "dheading_deg",
+    "sd_x",
+    "sd_y",
+    "sd_z",
+    "sd_heading_deg",
+    "peak_dx",
+    "peak_dy",
+    "peak_dz",
+    "peak_dheading_deg",
+    "log_score",
+    "n_points",
+    "seconds",
+    "status",
+    "reason",
+]
+RESIDUAL_COLUMNS = [
+    "scan",
+    "reference",
+    "ex",
+    "ey",
+    "ez",
+    "eheading_deg",
+    "rx",
+    "ry",
+    "rz",
+    "rheading",
+    "verdict",
+]
 TREE_COLUMNS = ["tree_id", "x", "y", "z", "dbh_m", "n_scans", "n_cylinders", "visible_length_m"]
-CYLINDER_COLUMNS = ["scan", "cylinder_id", "x0", "y0", "z0", "x1", "y1", "z1", "radius_m", "n_circles"]
+CYLINDER_COLUMNS = [
+    "scan",
+    "cylinder_id",
+    "x0",
+    "y0",
+    "z0",
+    "x1",
+    "y1",
+    "z1",
+    "radius_m",
+    "n_circles",
+]
 
 
 def atomic_path(path: Path, write: Callable[[Path], None]) -> Path:
@@ -32,6 +90,7 @@ def atomic_path(path: Path, write: Callable[[Path], None]) -> Path:
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}{path.suffix}")
     try:
         write(tmp)
+        os.chmod(tmp, 0o644)  # helpers writing through mkstemp leave 0600
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -45,47 +104,330 @@ def write_csv(df: pd.DataFrame, path: Path, columns: list[str]) -> Path:
     for c in out.columns:
         if out[c].dtype == bool:
             out[c] = out[c].map({True: "true", False: "false"})
-    return atomic_path(path, lambda tmp: out.to_csv(tmp, index=False, float_format="%.6g", na_rep=""))
+    return atomic_path(
+        path, lambda tmp: out.to_csv(tmp, index=False, float_format="%.6g", na_rep="")
+    )
 
 
-def write_exports(campaign: Campaign, out: str | Path) -> list[Path]:
-    """Write every export of DESIGN.md section 4 that the stored assets allow; return paths."""
-    from .core.elevation import elevation_png, save_elevation_npz
+EXPORTS = (
+    "poses.csv",
+    "registrations.csv",
+    "residuals.csv",
+    "trees.csv",
+    "cylinders.parquet",
+    "elevation.npz",
+    "elevation.png",
+    "trees.geojson",
+    "cloud.laz",
+    "cloud.ply",
+    "map.png",
+    "report.html",
+)
 
+
+def write_exports(
+    campaign: Campaign,
+    out: str | Path,
+    *,
+    cloud_spacing_m: float | None = 0.05,
+    picture: bool = True,
+    report: bool = True,
+    progress=None,
+    instance=None,
+) -> list[Path]:
+    """Write every export that the stored assets allow; return the paths.
+
+    ``cloud_spacing_m``: voxel size of the point cloud exports (0 keeps every point, None
+    writes no cloud). ``picture``: render ``map.png``; ``report``: write ``report.html``
+    (timings from the Dagster ``instance``). ``progress``: a callable or
+    :class:`~forestmap_assets.progress.Progress` (a bar over the files)."""
+    from .core.elevation import save_elevation_npz
+    from .figures import elevation_figure, save_png
+    from .progress import as_progress
+
+    prog = as_progress(progress)
     out = Path(out)
     written: list[Path] = []
     omap = load_asset("optimal_map", campaign=campaign)
     poses = omap["poses"]
-    written.append(write_csv(poses, out / "poses.csv", POSES_COLUMNS))
     regs = load_asset("pairwise_registrations", campaign=campaign)["registrations"]
-    written.append(write_csv(regs, out / "registrations.csv", REGISTRATION_COLUMNS))
     residuals = load_asset("residual_checks", campaign=campaign)
-    written.append(write_csv(residuals, out / "residuals.csv", RESIDUAL_COLUMNS))
     trees = load_asset("tree_list", campaign=campaign)
-    written.append(write_csv(trees, out / "trees.csv", TREE_COLUMNS))
     integrated = load_asset("integrated_map", campaign=campaign)
     cylinders = integrated["cylinders"].reindex(columns=CYLINDER_COLUMNS)
-    written.append(atomic_path(out / "cylinders.parquet", lambda tmp: cylinders.to_parquet(tmp, index=False)))
     grid = elevation_from_table(integrated["elevation"])
-    written.append(atomic_path(out / "elevation.npz", lambda tmp: save_elevation_npz(tmp, grid)))
-    placed = poses[poses["registered"].astype(bool)]
-    scan_xy = placed[["x", "y"]].to_numpy(float) if len(placed) else None
-    tree_xy = trees[["x", "y"]].to_numpy(float) if len(trees) else None
-    written.append(
-        atomic_path(
-            out / "elevation.png",
-            lambda tmp: elevation_png(tmp, grid, f"{campaign.name}: ground elevation (lowest hit)", scan_positions=scan_xy, trees=tree_xy),
+    reference = campaign.scan_ids[0]
+    placed = int(poses["registered"].astype(bool).sum())
+    n_cyl = len(integrated["cylinders"])
+    title = (
+        f"{campaign.name}: {placed} of {len(poses)} scans, {n_cyl} cylinders, {len(trees)} trees"
+    )
+
+    steps = [
+        ("poses.csv", lambda p: write_csv(poses, p, POSES_COLUMNS)),
+        ("registrations.csv", lambda p: write_csv(regs, p, REGISTRATION_COLUMNS)),
+        ("residuals.csv", lambda p: write_csv(residuals, p, RESIDUAL_COLUMNS)),
+        ("trees.csv", lambda p: write_csv(trees, p, TREE_COLUMNS)),
+        (
+            "cylinders.parquet",
+            lambda p: atomic_path(p, lambda tmp: cylinders.to_parquet(tmp, index=False)),
+        ),
+        ("elevation.npz", lambda p: atomic_path(p, lambda tmp: save_elevation_npz(tmp, grid))),
+        (
+            "elevation.png",
+            lambda p: save_png(
+                elevation_figure(
+                    grid,
+                    poses,
+                    trees,
+                    title=f"{campaign.name}: ground elevation (lowest hit), "
+                    f"frame of scan {reference}",
+                    reference=reference,
+                ),
+                p,
+                dpi=120,
+            ),
+        ),
+        ("trees.geojson", lambda p: write_geojson(trees, p, campaign)),
+    ]
+    if cloud_spacing_m is not None:
+        steps.append(
+            ("cloud.laz + cloud.ply", lambda p: write_clouds(campaign, poses, out, cloud_spacing_m))
+        )
+    if picture:
+        from .render import render_map
+
+        steps.append(
+            (
+                "map.png",
+                lambda p: render_map(
+                    p, integrated["cylinders"], grid, poses, title=title, reference=reference
+                ),
+            )
+        )
+    if report:
+        from .report import write_report
+
+        steps.append(("report.html", lambda p: write_report(campaign, out, instance=instance)))
+    with prog.bar(len(steps), "exports", unit="file") as bar:
+        for name, write in steps:
+            result = write(out / name)
+            written.extend(result if isinstance(result, list) else [result])
+            bar.update(note=name)
+    return written
+
+
+def write_geojson(trees: pd.DataFrame, path: Path, campaign: Campaign) -> Path:
+    """The tree list as a GeoJSON FeatureCollection of Points ``[x, y, z]`` in the campaign's
+    local frame (metres, levelled frame of the reference scan; no geographic CRS, which the
+    foreign member ``forestmap`` states), every ``trees.csv`` column as a property."""
+    features = []
+    for row in trees.reindex(columns=TREE_COLUMNS).itertuples(index=False):
+        props = {c: _json_value(getattr(row, c)) for c in TREE_COLUMNS}
+        coords = [_json_value(row.x), _json_value(row.y), _json_value(row.z)]
+        features.append(
+            {
+                "type": "Feature",
+                "id": props["tree_id"],
+                "geometry": {"type": "Point", "coordinates": [c for c in coords if c is not None]},
+                "properties": props,
+            }
+        )
+    doc = {
+        "type": "FeatureCollection",
+        "name": f"{campaign.name} trees",
+        "forestmap": {
+            "frame": f"local levelled frame of scan {campaign.scan_ids[0]}",
+            "units": "m",
+            "crs": None,
+            "z": "ground elevation under the stem",
+            "campaign": campaign.name,
+        },
+        "features": features,
+    }
+    return atomic_path(
+        path, lambda tmp: tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    )
+
+
+def _json_value(v):
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if np.isfinite(v) else None
+    if isinstance(v, (np.bool_, bool)):
+        return bool(v)
+    return v
+
+
+def campaign_cloud(campaign: Campaign, poses: pd.DataFrame, spacing_m: float) -> pd.DataFrame:
+    """The registered point cloud of the campaign from the stored range images (see
+    :func:`~forestmap_assets.core.point_cloud.registered_cloud`)."""
+    from .core.point_cloud import registered_cloud
+
+    placed = set(poses.loc[poses["registered"].astype(bool), "scan"])
+    scans = {}
+    for sid in campaign.scan_ids:
+        if sid not in placed:
+            continue
+        try:
+            image = load_asset("range_images", campaign=campaign, scan=sid)
+        except FileNotFoundError:
+            continue
+        v = image.valid
+        xyz = image.xyz[v]
+        table = pd.DataFrame({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]})
+        if image.intensity is not None:
+            table["intensity"] = image.intensity[v]
+        if image.rgb is not None:
+            for i, c in enumerate("rgb"):
+                table[c] = image.rgb[..., i][v]
+        scans[sid] = table
+    return registered_cloud(scans, poses, spacing_m, scan_ids=campaign.scan_ids)
+
+
+def write_clouds(
+    campaign: Campaign, poses: pd.DataFrame, out: Path, spacing_m: float
+) -> list[Path]:
+    """``cloud.laz`` and ``cloud.ply`` of :func:`campaign_cloud`."""
+    cloud = campaign_cloud(campaign, poses, spacing_m)
+    note = (
+        f"forestmap campaign {campaign.name}, frame of scan {campaign.scan_ids[0]}, "
+        f"spacing {spacing_m:g} m"
+    )
+    return [
+        write_laz(cloud, out / "cloud.laz", campaign.scan_ids, note),
+        write_ply(cloud, out / "cloud.ply", campaign.scan_ids, note),
+    ]
+
+
+def write_laz(cloud: pd.DataFrame, path: Path, scan_ids: list[str], note: str = "") -> Path:
+    """LAS 1.4 (compressed when ``path`` ends in .laz) with millimetre scales, an extra
+    dimension ``scan`` (uint16 index into ``scan_ids``, also in ``point_source_id``), RGB
+    (16 bit) and intensity when the cloud has them, and a VLR ``forestmap/1`` holding the
+    scan ids as JSON."""
+    import laspy
+
+    has_rgb = all(c in cloud for c in "rgb")
+    header = laspy.LasHeader(point_format=7 if has_rgb else 6, version="1.4")
+    header.add_extra_dim(
+        laspy.ExtraBytesParams(name="scan", type=np.uint16, description="scan index")
+    )
+    xyz = cloud[["x", "y", "z"]].to_numpy(np.float64)
+    header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.vlrs.append(
+        laspy.VLR(
+            user_id="forestmap",
+            record_id=1,
+            description="scan ids (JSON)",
+            record_data=json.dumps({"scan_ids": list(scan_ids), "note": note}).encode(),
         )
     )
-    return written
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    scan = cloud["scan"].to_numpy(np.uint16)
+    las.scan = scan
+    las.point_source_id = scan
+    if "intensity" in cloud:
+        inten = cloud["intensity"].to_numpy(np.float64)
+        top = np.nanmax(inten) if len(inten) and np.isfinite(inten).any() else 1.0
+        las.intensity = np.clip(
+            np.nan_to_num(inten / (top if top > 0 else 1.0)) * 65535, 0, 65535
+        ).astype(np.uint16)
+    if has_rgb:
+        las.red, las.green, las.blue = (cloud[c].to_numpy(np.uint16) * 257 for c in "rgb")
+    compress = path.suffix.lower() == ".laz"
+    return atomic_path(path, lambda tmp: las.write(str(tmp), do_compress=compress))
+
+
+def write_ply(cloud: pd.DataFrame, path: Path, scan_ids: list[str], note: str = "") -> Path:
+    """Binary little-endian PLY: ``x y z`` (double), ``red green blue`` (uchar) and
+    ``intensity`` (float) when present, ``scan`` (ushort index into ``scan_ids``; one header
+    comment ``scan <index> <id>`` per scan)."""
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    props = ["property double x", "property double y", "property double z"]
+    if all(c in cloud for c in "rgb"):
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        props += ["property uchar red", "property uchar green", "property uchar blue"]
+    if "intensity" in cloud:
+        fields.append(("intensity", "<f4"))
+        props.append("property float intensity")
+    fields.append(("scan", "<u2"))
+    props.append("property ushort scan")
+    data = np.empty(len(cloud), dtype=fields)
+    source = {"red": "r", "green": "g", "blue": "b"}
+    for name, _ in fields:
+        data[name] = cloud[source.get(name, name)].to_numpy()
+    comments = [f"comment {note}"] if note else []
+    comments += [f"comment scan {i} {sid}" for i, sid in enumerate(scan_ids)]
+    header = (
+        "\n".join(
+            [
+                "ply",
+                "format binary_little_endian 1.0",
+                *comments,
+                f"element vertex {len(cloud)}",
+                *props,
+                "end_header",
+            ]
+        )
+        + "\n"
+    )
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            fh.write(header.encode("ascii"))
+            fh.write(data.tobytes())
+
+    return atomic_path(path, write)
+
+
+def read_ply(path: str | Path) -> tuple[pd.DataFrame, list[str]]:
+    """Read a PLY written by :func:`write_ply`: the vertex table and the header comments."""
+    raw = Path(path).read_bytes()
+    end = raw.index(b"end_header\n") + len(b"end_header\n")
+    lines = raw[:end].decode("ascii").splitlines()
+    types = {
+        "double": "<f8",
+        "float": "<f4",
+        "uchar": "u1",
+        "ushort": "<u2",
+        "int": "<i4",
+        "uint": "<u4",
+    }
+    fields = [(ln.split()[2], types[ln.split()[1]]) for ln in lines if ln.startswith("property ")]
+    count = int(next(ln.split()[2] for ln in lines if ln.startswith("element vertex")))
+    data = np.frombuffer(raw, dtype=fields, count=count, offset=end)
+    return pd.DataFrame({name: data[name] for name, _ in fields}), [
+        ln[8:] for ln in lines if ln.startswith("comment ")
+    ]
 
 
 def elevation_to_table(grid) -> pd.DataFrame:
     """A merged elevation grid as a sparse table (ix, iy, z) plus its origin columns."""
     iy, ix = np.nonzero(np.isfinite(grid.z))
-    df = pd.DataFrame({"ix": ix.astype(np.int32), "iy": iy.astype(np.int32), "z": grid.z[iy, ix].astype(np.float32)})
-    meta = pd.DataFrame({"x0": [grid.x0], "y0": [grid.y0], "cell_m": [grid.cell_m], "nx": [grid.z.shape[1]], "ny": [grid.z.shape[0]]})
-    return df.assign(**{k: np.repeat(meta[k].to_numpy(), len(df)) for k in meta}) if len(df) else df.assign(**{k: pd.Series(dtype=meta[k].dtype) for k in meta})
+    df = pd.DataFrame(
+        {
+            "ix": ix.astype(np.int32),
+            "iy": iy.astype(np.int32),
+            "z": grid.z[iy, ix].astype(np.float32),
+        }
+    )
+    meta = pd.DataFrame(
+        {
+            "x0": [grid.x0],
+            "y0": [grid.y0],
+            "cell_m": [grid.cell_m],
+            "nx": [grid.z.shape[1]],
+            "ny": [grid.z.shape[0]],
+        }
+    )
+    return (
+        df.assign(**{k: np.repeat(meta[k].to_numpy(), len(df)) for k in meta})
+        if len(df)
+        else df.assign(**{k: pd.Series(dtype=meta[k].dtype) for k in meta})
+    )
 
 
 def elevation_from_table(df: pd.DataFrame):
@@ -97,4 +439,9 @@ def elevation_from_table(df: pd.DataFrame):
     nx, ny = int(df["nx"].iloc[0]), int(df["ny"].iloc[0])
     z = np.full((ny, nx), np.nan)
     z[df["iy"].to_numpy(), df["ix"].to_numpy()] = df["z"].to_numpy()
-    return ElevationGrid(z=z, x0=float(df["x0"].iloc[0]), y0=float(df["y0"].iloc[0]), cell_m=float(df["cell_m"].iloc[0]))
+    return ElevationGrid(
+        z=z,
+        x0=float(df["x0"].iloc[0]),
+        y0=float(df["y0"].iloc[0]),
+        cell_m=float(df["cell_m"].iloc[0]),
+    )

@@ -16,7 +16,7 @@ def _run(tmp_path, **sim):
     root = simulate_campaign(tmp_path / "plot", resolution="quarter", plot_size=30.0, trees=30, **sim)
     summary = run_campaign(root, progress=lambda m: None)
     assert summary.failures == [] and summary.not_built == []
-    write_exports(load_campaign(root), root / "outputs")
+    write_exports(load_campaign(root), root / "outputs", cloud_spacing_m=None, picture=False, report=False)
     return root, evaluate_campaign(root)
 
 

@@ -8,12 +8,12 @@ from dagster import AssetIn, MetadataValue, Output, asset
 
 from ..campaign import Campaign
 from ..core.range_image import RangeImage
+from ..figures import circle_mask, range_mask_figure
 from .common import (
     asset_key,
     code_version,
     data_version,
     png_metadata,
-    range_image_figure,
     scan_partitions,
 )
 
@@ -60,7 +60,8 @@ def feature_assets(campaign: Campaign) -> list:
             "chains": int(table["chain_id"].nunique()) if len(table) else 0,
             "inlier_points": int(table["n_inliers"].sum()) if len(table) else 0,
             "segment_mask": png_metadata(
-                range_image_figure(image.range_m, f"segments, scan {context.partition_key}", segment_mask(image, table))
+                range_mask_figure(image, segment_mask(image, table), f"segments, scan {context.partition_key}",
+                                  label="segments")
             ),
         }
         return Output(table, metadata=meta, data_version=data_version(table))
@@ -91,10 +92,9 @@ def feature_assets(campaign: Campaign) -> list:
                 rejected_by=MetadataValue.json(_counts(last.loc[~last["valid"], "reject_reason"])),
                 rejected_share=round(float((~last["valid"]).mean()), 4),
             )
-            valid_ids = set(last.loc[last["valid"], "segment_id"])
-            mask = segment_mask(image, segments[segments["segment_id"].isin(valid_ids)])
-            meta["circle_mask"] = png_metadata(
-                range_image_figure(image.range_m, f"valid circles, scan {context.partition_key}", mask)
+            meta["circle_mask"] = png_metadata(  # each row's mark as wide as its circle (Fig. 4.15c)
+                range_mask_figure(image, circle_mask(image, last), f"valid circles, scan {context.partition_key}",
+                                  label="valid circle models")
             )
         else:
             meta.update(valid_circles=0, rejected_circles=0, rejected_share=0.0)

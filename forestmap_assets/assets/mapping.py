@@ -16,6 +16,7 @@ from dagster import (
 )
 
 from ..campaign import Campaign
+from ..progress import report
 from .common import asset_key, code_version, data_version
 
 POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
@@ -109,7 +110,7 @@ def mapping_assets(campaign: Campaign) -> list:
     def pairwise_registrations(context, candidate_pairs, submaps, elevation_maps):
         bundle = register_candidates(candidate_pairs, submaps or {}, params.registration,
                                      elevation=elevation_maps or {}, elevation_cell_m=params.elevation.cell_m,
-                                     progress=context.log.info)
+                                     progress=lambda m: (context.log.info(m), report(m)))
         regs = bundle["registrations"]
         counts = regs["status"].value_counts().to_dict()
         meta = {

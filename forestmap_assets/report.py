@@ -1,0 +1,449 @@
+"""``report.html``: one self-contained page per campaign (DESIGN.md section 4).
+
+Everything is inline (CSS, PNG images as data URIs), so the file can be mailed or archived
+alone. Sections: summary numbers, the map picture (``map.png``) and the elevation map, the
+registration network, poses with sigmas, registrations with their status, residual verdicts,
+the tree list summary with a DBH histogram, the accuracy against the truth of a simulated
+campaign (when ``truth/`` exists), timings per stage, and the resolved parameters.
+
+Timings come from the Dagster instance: for each stage, the step durations of the runs that
+materialised its current outputs (per-scan stages: the latest materialisation of each scan,
+summed); the registrations table adds each pair's search time.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .access import load_asset
+from .campaign import Campaign
+
+TIMING_COLUMNS = [
+    "stage",
+    "granularity",
+    "outputs",
+    "seconds",
+    "slowest_seconds",
+    "last_materialised",
+]
+
+CSS = """
+body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:1.5em auto;
+max-width:1250px;
+color:#222;padding:0 1em}
+h1{margin-bottom:.1em}h2{border-bottom:2px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
+.sub{color:#666;margin-top:0}
+.cards{display:flex;flex-wrap:wrap;gap:.6em}
+.card{border:1px solid #ddd;border-radius:6px;padding:.5em .9em;min-width:9em;background:#fafafa}
+.card .v{font-size:1.5em;font-weight:600}.card .k{color:#666;font-size:.85em}
+.card.bad{border-color:#c51b1b;background:#fdf0f0}.card.good{border-color:#1b7837;background:#f0f8f2}
+table{border-collapse:collapse;font-size:.85em;margin:.4em 0}
+th,td{border:1px solid #ddd;padding:.2em .5em;text-align:right}th{background:#f3f3f3}
+td.t{text-align:left}
+.accepted,.ok,.admitted{color:#1b7837;font-weight:600}.rejected{color:#d95f02;font-weight:600}
+.failed,.inconsistent{color:#c51b1b;font-weight:600}
+img{max-width:100%;border:1px solid #eee}
+.row{display:flex;flex-wrap:wrap;gap:1em;align-items:flex-start}.row>div{flex:1 1 480px}
+details{margin:.5em 0}pre{background:#f7f7f7;padding:.6em;overflow:auto;font-size:.8em}
+.note{color:#666;font-size:.85em}
+"""
+
+
+# ------------------------------------------------------------------------------------------
+# data
+
+
+def stage_timings(campaign: Campaign, instance=None) -> pd.DataFrame:
+    """Seconds per pipeline stage from the Dagster instance (see the module docstring)."""
+    from dagster import AssetKey
+    from dagster._core.event_api import AssetRecordsFilter
+
+    from .assets.common import PIPELINE
+
+    if instance is None:
+        from .runner import get_instance
+
+        instance = get_instance()
+    step_cache: dict[str, dict[str, float]] = {}
+
+    def durations(run_id: str) -> dict[str, float]:
+        if run_id not in step_cache:
+            stats = instance.get_run_step_stats(run_id)
+            step_cache[run_id] = {
+                s.step_key: float(s.end_time - s.start_time)
+                for s in stats
+                if s.start_time is not None and s.end_time is not None
+            }
+        return step_cache[run_id]
+
+    rows = []
+    for stage, granularity in PIPELINE:
+        key = AssetKey([campaign.key, stage])
+        records = instance.fetch_materializations(
+            AssetRecordsFilter(asset_key=key), limit=max(200, 8 * len(campaign.scans))
+        ).records
+        latest: dict[str | None, object] = {}
+        for rec in records:  # newest first
+            part = rec.asset_materialization.partition if rec.asset_materialization else None
+            if granularity == "scan" and part not in campaign.scan_ids:
+                continue
+            latest.setdefault(part, rec)
+        if not latest:
+            rows.append(
+                dict(
+                    stage=stage,
+                    granularity=granularity,
+                    outputs=0,
+                    seconds=np.nan,
+                    slowest_seconds=np.nan,
+                    last_materialised="",
+                )
+            )
+            continue
+        secs = []
+        for rec in latest.values():
+            entry = rec.event_log_entry
+            secs.append(durations(entry.run_id).get(entry.step_key or "", np.nan))
+        newest = max(rec.event_log_entry.timestamp for rec in latest.values())
+        rows.append(
+            dict(
+                stage=stage,
+                granularity=granularity,
+                outputs=len(latest),
+                seconds=float(np.nansum(secs)),
+                slowest_seconds=float(np.nanmax(secs)) if np.isfinite(secs).any() else np.nan,
+                last_materialised=datetime.fromtimestamp(newest, UTC).strftime(
+                    "%Y-%m-%d %H:%M:%S UTC"
+                ),
+            )
+        )
+    return pd.DataFrame(rows, columns=TIMING_COLUMNS)
+
+
+def _load(name: str, campaign: Campaign):
+    try:
+        return load_asset(name, campaign=campaign)
+    except FileNotFoundError:
+        return None
+
+
+def _truth_accuracy(campaign: Campaign, out_dir: Path):
+    if (
+        not (campaign.root / "truth" / "poses.csv").is_file()
+        or not (out_dir / "poses.csv").is_file()
+    ):
+        return None
+    from .sim.evaluate import evaluate_campaign
+
+    try:
+        return evaluate_campaign(campaign.root, out_dir)
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+# ------------------------------------------------------------------------------------------
+# html pieces
+
+
+def _img(data: bytes, alt: str) -> str:
+    b64 = base64.b64encode(data).decode()
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
+
+
+def _fig(fig, alt: str) -> str:
+    from .figures import png_bytes
+
+    return _img(png_bytes(fig, dpi=100), alt)
+
+
+def _fmt(v, digits: int) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return ""
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (float, np.floating)):
+        return f"{v:.{digits}f}"
+    return html.escape(str(v))
+
+
+def html_table(
+    df: pd.DataFrame,
+    digits: dict[str, int] | None = None,
+    classed: tuple[str, ...] = ("status", "verdict"),
+    default_digits: int = 3,
+) -> str:
+    """A plain HTML table; numbers right-aligned with ``digits`` per column, text left, cells of
+    ``classed`` columns carry their value as CSS class (status colours)."""
+    digits = digits or {}
+    if df is None or len(df) == 0:
+        return '<p class="note">(none)</p>'
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in df.columns)
+    body = []
+    for row in df.itertuples(index=False):
+        cells = []
+        for col, v in zip(df.columns, row, strict=True):
+            text = _fmt(v, digits.get(col, default_digits))
+            cls = []
+            if not isinstance(v, (int, float, np.number)) or isinstance(v, (bool, np.bool_)):
+                cls.append("t")
+            if col in classed and isinstance(v, str):
+                cls.append(html.escape(v))
+            attr = f' class="{" ".join(cls)}"' if cls else ""
+            cells.append(f"<td{attr}>{text}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+
+
+def _card(value, label: str, state: str = "") -> str:
+    return (
+        f'<div class="card {state}"><div class="v">{html.escape(str(value))}</div>'
+        f'<div class="k">{html.escape(label)}</div></div>'
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# the page
+
+
+def build_report(
+    campaign: Campaign, out_dir: str | Path, *, instance=None, timings: pd.DataFrame | None = None
+) -> str:
+    """The HTML text of ``report.html`` for a materialised campaign (see the module docstring).
+
+    Pictures already written to ``out_dir`` (``map.png``, ``elevation.png``) are embedded;
+    the network, residual and DBH figures are drawn here."""
+    from . import figures as F
+    from .exports import elevation_from_table
+
+    out_dir = Path(out_dir)
+    omap = _load("optimal_map", campaign) or {}
+    regs_bundle = _load("pairwise_registrations", campaign) or {}
+    residuals = _load("residual_checks", campaign)
+    trees = _load("tree_list", campaign)
+    integrated = _load("integrated_map", campaign) or {}
+    poses = omap.get("poses")
+    links = omap.get("links")
+    regs = regs_bundle.get("registrations")
+    mp = campaign.params.mapping
+    if timings is None:
+        try:
+            timings = stage_timings(campaign, instance)
+        except Exception as exc:  # the report must not fail on the run history
+            timings = pd.DataFrame({"stage": [f"timings unavailable: {exc}"]})
+
+    n_scans = len(campaign.scans)
+    n_reg = int(poses["registered"].astype(bool).sum()) if poses is not None else 0
+    counts = regs["status"].value_counts().to_dict() if regs is not None and len(regs) else {}
+    admitted = (
+        int((links["status"] == "admitted").sum())
+        if links is not None and len(links) and "status" in links
+        else 0
+    )
+    bad = (
+        int((residuals["verdict"] != "ok").sum()) if residuals is not None and len(residuals) else 0
+    )
+    n_res = len(residuals) if residuals is not None else 0
+    n_trees = len(trees) if trees is not None else 0
+    dbh = trees["dbh_m"].dropna() if trees is not None and len(trees) else pd.Series(dtype=float)
+    n_cyl = len(integrated["cylinders"]) if "cylinders" in integrated else 0
+    total_s = float(np.nansum(timings["seconds"])) if "seconds" in timings else np.nan
+
+    parts: list[str] = []
+    add = parts.append
+    add(f"<h1>{html.escape(campaign.name)}</h1>")
+    add(
+        f'<p class="sub">campaign folder <code>{html.escape(str(campaign.root))}</code>, '
+        f"environment <b>{html.escape(campaign.environment)}</b>, "
+        f"frame of scan <b>{html.escape(campaign.scan_ids[0])}</b>; "
+        f"report written {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}</p>"
+    )
+
+    add("<h2>Summary</h2><div class='cards'>")
+    add(_card(f"{n_reg}/{n_scans}", "scans registered", "good" if n_reg == n_scans else "bad"))
+    add(
+        _card(
+            f"{counts.get('accepted', 0)}/{counts.get('rejected', 0)}/{counts.get('failed', 0)}",
+            "pairs accepted / rejected / failed",
+        )
+    )
+    add(_card(admitted, "links in the optimal map"))
+    add(_card(f"{n_res - bad}/{n_res}", "residual checks ok", "good" if bad == 0 else "bad"))
+    add(_card(n_trees, "trees"))
+    add(_card(f"{100 * dbh.median():.1f} cm" if len(dbh) else "-", "median DBH"))
+    add(_card(n_cyl, "cylinder segments"))
+    add(_card(f"{total_s:.0f} s" if np.isfinite(total_s) else "-", "processing time (stages)"))
+    add("</div>")
+
+    accuracy = _truth_accuracy(campaign, out_dir)
+    if accuracy is not None:
+        s = accuracy.summary()
+        add("<h2>Against the simulator's truth</h2><div class='cards'>")
+        add(_card(f"{100 * s['max_xy_error_m']:.1f} cm", "largest xy pose error"))
+        add(_card(f"{s['max_heading_error_deg']:.2f} deg", "largest heading error"))
+        add(_card(f"{100 * s['detection_rate']:.0f} %", "trees found (seen from 2+ scans)"))
+        add(_card(f"{100 * s['dbh_rmse_m']:.1f} cm", "DBH RMSE"))
+        add(_card(f"{100 * s['dbh_bias_m']:+.1f} cm", "DBH bias"))
+        add(_card(s["false_trees"], "trees not in the truth"))
+        add("</div>")
+        add(
+            '<p class="note">Pose errors (m, deg) against <code>truth/poses.csv</code>; '
+            "<code>n*</code>: error divided by the reported standard deviation.</p>"
+        )
+        add(html_table(accuracy.poses, {c: 3 for c in accuracy.poses.columns}))
+
+    add("<h2>Map</h2>")
+    map_png = out_dir / "map.png"
+    if map_png.is_file():
+        add(_img(map_png.read_bytes(), "3-D map: cylinders, ground and scan positions"))
+        add(
+            '<p class="note">Cylinder segments of every scan (brown) on the 0.6 m ground model '
+            "(mean of the 5 lowest 0.1 m cells), scan frames x red, y green, z blue "
+            "(JP Figs. 12-13).</p>"
+        )
+    add("<div class='row'>")
+    elev_png = out_dir / "elevation.png"
+    if elev_png.is_file():
+        add(f"<div>{_img(elev_png.read_bytes(), 'merged elevation map')}</div>")
+    elif "elevation" in integrated and poses is not None:
+        grid = elevation_from_table(integrated["elevation"])
+        add(f"<div>{_fig(F.elevation_figure(grid, poses, trees), 'merged elevation map')}</div>")
+    if poses is not None:
+        add(f"<div>{_fig(F.network_figure(poses, regs, links), 'registration network')}</div>")
+    add("</div>")
+
+    add("<h2>Poses</h2>")
+    add(
+        f'<p class="note">Global poses in the levelled frame of scan '
+        f"{html.escape(campaign.scan_ids[0])} with their standard deviations from the optimal map "
+        "(thesis 3.2.2, 6.4).</p>"
+    )
+    add(html_table(poses, {"heading_deg": 3, "sd_heading_deg": 3}))
+
+    add("<h2>Registrations</h2>")
+    if regs is not None:
+        cols = [
+            c
+            for c in (
+                "scan",
+                "reference",
+                "dx",
+                "dy",
+                "dz",
+                "dheading_deg",
+                "sd_x",
+                "sd_y",
+                "sd_z",
+                "sd_heading_deg",
+                "log_score",
+                "n_points",
+                "matched_points",
+                "seconds",
+                "status",
+                "reason",
+            )
+            if c in regs
+        ]
+        add(html_table(regs[cols], {"log_score": 1, "seconds": 2, "matched_points": 0}))
+    if links is not None and len(links) and "status" in links:
+        add("<details><summary>how each link entered the optimal map</summary>")
+        add(
+            html_table(
+                links[
+                    [
+                        c
+                        for c in ("step", "scan", "reference", "role", "status", "reason")
+                        if c in links
+                    ]
+                ]
+            )
+        )
+        add("</details>")
+
+    add("<h2>Residual checks</h2>")
+    add(
+        '<p class="note">Residuals of eq. (11) of every admitted observation, divided by its '
+        f"sigma; a link is inconsistent beyond {mp.residual_sigmas:g} sigma in x, y or heading, "
+        f"or {mp.z_residual_sigmas:g} sigma in z (thesis 6.4, 7.1).</p>"
+    )
+    if residuals is not None and len(residuals):
+        add(
+            html_table(
+                residuals,
+                {c: 3 for c in ("ex", "ey", "ez", "eheading_deg")}
+                | {c: 2 for c in ("rx", "ry", "rz", "rheading")},
+            )
+        )
+        add(
+            _fig(
+                F.residual_figure(residuals, mp.residual_sigmas, mp.z_residual_sigmas), "residuals"
+            )
+        )
+    else:
+        add('<p class="note">(no admitted observation)</p>')
+
+    add("<h2>Trees</h2>")
+    if trees is not None and len(trees):
+        two = int((trees["n_scans"] >= 2).sum())
+        add("<div class='cards'>")
+        add(_card(n_trees, "trees"))
+        add(_card(len(dbh), "with a DBH"))
+        add(_card(two, "seen from 2 or more scans"))
+        if len(dbh):
+            add(_card(f"{100 * dbh.mean():.1f} cm", "mean DBH"))
+            add(_card(f"{100 * dbh.min():.1f}-{100 * dbh.max():.1f} cm", "DBH range"))
+        add("</div><div class='row'><div>")
+        truth = None
+        truth_csv = campaign.root / "truth" / "trees.csv"
+        if truth_csv.is_file():
+            truth = pd.read_csv(truth_csv)
+        add(_fig(F.dbh_histogram(trees, truth), "DBH histogram"))
+        add("</div><div>")
+        add("<details><summary>the tree list</summary>")
+        add(html_table(trees, {"dbh_m": 3, "visible_length_m": 2}))
+        add("</details></div></div>")
+    else:
+        add('<p class="note">(no tree)</p>')
+
+    add("<h2>Timings</h2>")
+    add(
+        '<p class="note">Seconds of the Dagster steps that produced the current outputs of each '
+        "stage (per-scan stages: summed over the scans); cached stages keep the time of the run "
+        "that made them.</p>"
+    )
+    add(html_table(timings, {"seconds": 1, "slowest_seconds": 1}))
+
+    add("<h2>Parameters</h2><details><summary>resolved parameters of every stage</summary><pre>")
+    add(html.escape(json.dumps(campaign.params.model_dump(), indent=1, default=str)))
+    add("</pre></details>")
+
+    return (
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
+        f"<title>forestmap report: {html.escape(campaign.name)}</title>"
+        f"<style>{CSS}</style></head><body>" + "\n".join(parts) + "</body></html>"
+    )
+
+
+def write_report(
+    campaign: Campaign, out_dir: str | Path, *, instance=None, timings: pd.DataFrame | None = None
+) -> Path:
+    """Write ``out_dir/report.html`` atomically; return its path."""
+    out_dir = Path(out_dir)
+    text = build_report(campaign, out_dir, instance=instance, timings=timings)
+    path = out_dir / "report.html"
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
