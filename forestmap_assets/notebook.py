@@ -1,0 +1,90 @@
+"""Small helpers for the notebooks under ``notebooks/``.
+
+The notebooks read their campaign folder from ``$FORESTMAP_CAMPAIGN`` and otherwise use the
+bundled sample ``data/sample`` (after the README's main command ``forestmap run data/sample``
+its assets are in the store). They read every stage's output straight from the asset store with
+:func:`~forestmap_assets.access.load_asset`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pandas as pd
+
+from .campaign import Campaign
+from .core.geometry import relative_pose
+
+SAMPLE = Path("data") / "sample"
+
+
+def campaign_folder(default: str | os.PathLike | None = None) -> Path:
+    """``$FORESTMAP_CAMPAIGN`` if set; else ``default``; else the repository's ``data/sample``,
+    looked for from the working directory upwards (a notebook runs in ``notebooks/``) and next
+    to the installed package."""
+    env = os.environ.get("FORESTMAP_CAMPAIGN")
+    if env:
+        return Path(env).expanduser().resolve()
+    if default is not None:
+        return Path(default).expanduser().resolve()
+    here = Path.cwd().resolve()
+    for folder in (here, *here.parents, Path(__file__).resolve().parent.parent):
+        if (folder / SAMPLE / "campaign.yaml").is_file():
+            return folder / SAMPLE
+    raise FileNotFoundError(
+        "no campaign: set FORESTMAP_CAMPAIGN to a campaign folder, or run the README's main "
+        "command (forestmap run data/sample) from the repository"
+    )
+
+
+def truth_poses(campaign: Campaign) -> pd.DataFrame | None:
+    """``truth/poses.csv`` of a simulated campaign (``scan, x, y, z, heading_deg``), else None."""
+    path = campaign.root / "truth" / "poses.csv"
+    return pd.read_csv(path, dtype={"scan": str}) if path.is_file() else None
+
+
+def truth_relative(
+    campaign: Campaign, scan: str, reference: str
+) -> tuple[float, float, float, float] | None:
+    """True location of ``scan`` in the levelled frame of ``reference`` (simulated campaigns)."""
+    truth = truth_poses(campaign)
+    if truth is None:
+        return None
+    t = truth.set_index("scan")
+    if scan not in t.index or reference not in t.index:
+        return None
+    cols = ["x", "y", "z", "heading_deg"]
+    return relative_pose(t.loc[scan, cols].to_numpy(float), t.loc[reference, cols].to_numpy(float))
+
+
+def variant_campaign(
+    campaign: Campaign, overrides: dict[str, dict], folder: str | os.PathLike
+) -> Path:
+    """A copy of the campaign's manifest in ``folder`` with the same name (so the same asset
+    keys, store and cache) and scan paths pointing at the original files, with ``overrides``
+    merged into its ``params`` section. Returns the new campaign folder."""
+    import yaml
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = yaml.safe_load((campaign.root / "campaign.yaml").read_text())
+    doc["name"] = campaign.name
+    for scan in doc["scans"]:
+        scan["path"] = str((campaign.root / scan["path"]).resolve())
+    params = dict(doc.get("params") or {})
+    for stage, values in overrides.items():
+        params[stage] = {**dict(params.get(stage) or {}), **values}
+    doc["params"] = params
+    (folder / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return folder
+
+
+def stage_table(campaign: Campaign) -> pd.Series:
+    """State (``missing`` / ``stale`` / ``fresh``) of every pipeline stage of ``campaign``
+    under its own manifest, from Dagster's stale-status resolver (as ``forestmap status``)."""
+    from .runner import get_instance, stage_states
+    from .definitions import build_definitions
+
+    states = stage_states(build_definitions([campaign]), campaign, get_instance())
+    return pd.Series({s.stage: s.state for s in states}, name="state")
