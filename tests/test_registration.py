@@ -201,3 +201,17 @@ def test_ambiguous_search_stops_at_cell_budget():
     r = register_pair(one, pa, (0, 0, 0, 0), (8.0, 8.0, 0.5, 180.0), RegistrationParams(),
                       max_cells=2000)
     assert r.status == "failed" and "ambiguous" in r.reason
+
+
+def test_fast_search_corridor_pair_has_a_result():
+    """Regression: a corridor pair whose last level raised the best score inside the live
+    chunks used to hand mismatched live lists to the exact kernel (garbage scores, segfault)."""
+    from pathlib import Path
+
+    from forestmap_assets.params import resolve_params
+
+    d = np.load(Path(__file__).parent / "data" / "corridor_pair.npz")
+    reg = resolve_params("indoor").registration
+    r = register_pair(d["scan"], d["ref"], tuple(d["centre"]), tuple(d["half"]), reg)
+    assert r.status == "ok"
+    assert r.cloud_cells > 0 and np.isfinite(r.peak_score)

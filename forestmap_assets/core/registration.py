@@ -559,7 +559,8 @@ def _fast_search(points, reference, lattice: SearchLattice, model, field, keep_l
             new_live = (pre, pre_off, pre_live)
             mass = scores
         if last:
-            keep0 = bounds >= best  # a subset of ``pre``
+            # cells without live lists had bounds below a best raised inside the chunks
+            keep0 = (bounds >= best) & pre
             exact = np.full(len(cells), -np.inf)
             if keep0.any():
                 lo_, li_ = compact_live(keep0[pre], pre_off[:-1], np.diff(pre_off), pre_live)

@@ -604,6 +604,8 @@ class ReferenceField:
 
     def exact_live(self, poses, live_off, live_idx, pts) -> np.ndarray:
         """Exact scores of cells at ``poses`` from their own live lists."""
+        if len(live_off) != len(poses) + 1:
+            raise ValueError(f"exact_live: {len(poses)} cells but {len(live_off) - 1} live lists")
         m = self.model
         out = np.empty(len(poses))
         _exact_live(
