@@ -86,7 +86,6 @@ def main() -> None:
                 norm.append(r.pop("poses"))
             rows.append(r)
             print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}, flush=True)
-    table = pd.DataFrame(rows)
     allp = pd.concat(norm, ignore_index=True) if norm else pd.DataFrame()
     lines = [
         "## Whole pipeline on simulated campaigns (issue 5)",

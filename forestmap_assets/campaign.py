@@ -24,7 +24,7 @@ SCAN_EXTENSIONS = (".npz", ".e57", ".las", ".laz", ".ply", ".pcd", ".xyz", ".txt
 
 _TOP_KEYS = {"name", "environment", "scans", "pairs", "search", "params", "sensor"}
 _SCAN_KEYS = {"id", "path", "tilt_deg", "a_priori"}
-_PAIR_KEYS = {"scan", "reference", "a_priori"}
+_PAIR_KEYS = {"scan", "reference", "a_priori", "search"}
 _SEARCH_KEYS = {"xy_m", "z_m", "heading_deg"}
 _SENSOR_KEYS = {"angular_step_deg"}
 
@@ -50,6 +50,7 @@ class PairEntry:
     scan: str
     reference: str
     a_priori: tuple[float, float, float, float]
+    search: tuple[tuple[str, float], ...] | None = None  # per-pair box (core/pair_checks.py)
 
 
 @dataclass(frozen=True)
@@ -203,7 +204,18 @@ def load_campaign(folder: str | Path) -> Campaign:
         if "a_priori" not in raw:
             raise _fail(where, f"{at}.a_priori: missing (dx, dy, dz, dheading_deg)")
         prior4 = _numbers(raw["a_priori"], 4, where, f"{at}.a_priori")
-        pairs.append(PairEntry(s, r, prior4))  # type: ignore[arg-type]
+        box = raw.get("search")
+        if box is not None:
+            from .core.pair_checks import search_box
+
+            if not isinstance(box, dict):
+                raise _fail(where, f"{at}.search: expected a mapping, e.g. {{along_deg: 90, across_m: 0.5}}")
+            try:
+                search_box((1.0, 1.0, 1.0), box)
+            except ValueError as exc:
+                raise _fail(where, f"{at}.{exc}") from None
+            box = tuple((str(k), float(v)) for k, v in box.items())
+        pairs.append(PairEntry(s, r, prior4, box))  # type: ignore[arg-type]
 
     search = doc.get("search")
     if search is not None:

@@ -43,11 +43,19 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--no-prior", action="store_true")
     s.add_argument("--format", choices=["npz", "las", "ply", "e57"], default="npz")
     s.add_argument("--tilt", type=_pair, default=None, metavar="ROLL,PITCH", help="max scanner tilt (deg)")
+    s.add_argument("--site", choices=["forest", "parking-lot", "corridor"], default="forest",
+                   help="the thesis's sites (spec 10.1): forest plot, parking lot (environment outdoor) "
+                   "or office corridor (environment indoor); --plot-size is the lot / corridor ring size")
+    s.add_argument("--people", type=int, default=0, help="people-shaped occluders (parking lot, corridor)")
 
     r = sub.add_parser("run", help="materialise every asset of a campaign and write the exports")
     r.add_argument("campaign", type=Path)
     r.add_argument("--out", type=Path, default=None)
     r.add_argument("--executor", choices=["in_process", "multiprocess", "dask"], default="in_process")
+    r.add_argument("--workers", type=int, default=None,
+                   help="processes for multiprocess / the local Dask cluster (default: CPU count)")
+    r.add_argument("--dask-address", default=None,
+                   help="Dask scheduler (default: $FORESTMAP_DASK_ADDRESS, else a local cluster)")
     r.add_argument("--cloud-spacing", type=float, default=0.05, metavar="M",
                    help="voxel size (m) of the registered point cloud cloud.laz / cloud.ply (0: every point)")
     r.add_argument("--no-cloud", action="store_true", help="do not write cloud.laz / cloud.ply")
@@ -70,7 +78,10 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--plot-size", type=float, default=40.0)
     e.add_argument("--trees", type=int, default=40)
     e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--budget", type=int, default=8)
+    e.add_argument("--budget", type=int, default=8, help="largest number of scans (default 8)")
+    e.add_argument("--resolution", choices=["full", "half", "quarter"], default="full")
+    e.add_argument("--min-gain", type=float, default=0.01,
+                   help="stop when a scan adds less than this share of the plot (default 0.01)")
     return p
 
 
@@ -94,6 +105,8 @@ def cmd_simulate(args) -> int:
         fmt=args.format,
         tilt_deg=args.tilt,
         progress=lambda m: _say(args, m),
+        site=args.site,
+        site_kwargs={"people": args.people} if args.people else None,
     )
     if args.quiet:
         print(out)
@@ -108,7 +121,8 @@ def cmd_run(args) -> int:
         raise UsageError(f"--cloud-spacing: expected a size >= 0 m, got {args.cloud_spacing:g}")
     progress = Progress(quiet=args.quiet)
     with use(progress):  # steps running in this process (in_process executor) report into it
-        summary = run_campaign(args.campaign, executor=args.executor, progress=progress)
+        summary = run_campaign(args.campaign, executor=args.executor, progress=progress,
+                               workers=args.workers, dask_address=args.dask_address)
     if summary.not_built:
         _say(args, f"not yet built in this version of forestmap: {', '.join(summary.not_built)}")
     if summary.failures:
@@ -125,6 +139,11 @@ def cmd_run(args) -> int:
     written = write_exports(summary.campaign, out, cloud_spacing_m=None if args.no_cloud else args.cloud_spacing,
                             picture=not args.no_report, report=not args.no_report, progress=progress)
     print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
+    if summary.check_failures:
+        _say(args, f"{len(summary.check_failures)} asset checks failed (listed above)")
+    from .io.store import default_store_url
+
+    _say(args, f"asset store: {default_store_url()}; run history: {os.environ.get('DAGSTER_HOME')} (forestmap ui)")
     _say(args, f"done in {summary.seconds:.1f} s")
     return 0
 
@@ -140,15 +159,17 @@ def cmd_solve(args) -> int:
 
 def cmd_status(args) -> int:
     from .campaign import load_campaign
-    from .definitions import build_definitions
     from .runner import get_instance, stage_states, sync_partitions
+    from .workspace import build_definitions
 
     campaign = load_campaign(args.campaign)
     defs = build_definitions([campaign])
     instance = get_instance()
     sync_partitions(instance, campaign)
+    from .assets.common import asset_key
+
     for state in stage_states(defs, campaign, instance):
-        print(f"{state.stage} {state.state}")
+        print(f"{asset_key(campaign, state.stage).to_user_string()} {state.state}")
     return 0
 
 
@@ -156,19 +177,29 @@ def cmd_ui(args) -> int:
     import subprocess
 
     from .runner import get_instance
+    from .webserver import webserver_command
+    from .workspace import data_root
 
     get_instance()  # sets DAGSTER_HOME to the persistent instance
-    workspace = Path(__file__).resolve().parent.parent / "workspace.yaml"
-    cmd = ["dagster", "dev", "-h", args.host, "-p", str(args.port)]
-    if workspace.exists():
-        cmd += ["-w", str(workspace)]
-    else:
-        cmd += ["-m", "forestmap_assets.definitions"]
-    return subprocess.call(cmd)
+    _say(args, f"Dagster UI on http://{args.host}:{args.port} for the campaigns under {data_root()} "
+               "(sensors, schedule and automation run with it; Ctrl-C stops it)")
+    return subprocess.call(webserver_command(args.host, args.port, dev=True))
 
 
 def cmd_explore(args) -> int:
-    raise UsageError("explore: next-best-view planning is not built yet in this version")
+    from .explore import explore
+
+    if args.budget < 1:
+        raise UsageError("explore: --budget must be at least 1")
+    res = explore(args.out, plot_size=args.plot_size, trees=args.trees, seed=args.seed,
+                  budget=args.budget, resolution=args.resolution, min_gain=args.min_gain,
+                  progress=lambda m: _say(args, m))
+    _say(args, f"explore: {len(res.steps)} scans ({res.stop_reason}); coverage "
+               f"{100 * res.coverage:.1f} %, {res.trees_with_dbh} trees with DBH; "
+               f"steps in {res.folder / 'explore' / 'steps.csv'}, map in {res.folder / 'outputs'}")
+    if args.quiet:
+        print(res.folder)
+    return 0
 
 
 COMMANDS = {

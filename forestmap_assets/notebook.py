@@ -83,8 +83,8 @@ def variant_campaign(
 def stage_table(campaign: Campaign) -> pd.Series:
     """State (``missing`` / ``stale`` / ``fresh``) of every pipeline stage of ``campaign``
     under its own manifest, from Dagster's stale-status resolver (as ``forestmap status``)."""
-    from .runner import get_instance, stage_states
     from .definitions import build_definitions
+    from .runner import get_instance, stage_states
 
     states = stage_states(build_definitions([campaign]), campaign, get_instance())
     return pd.Series({s.stage: s.state for s in states}, name="state")

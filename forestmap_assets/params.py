@@ -130,6 +130,14 @@ class RegistrationParams(_Stage):
     s_floor: float | None = None
     adjacency: Literal[8, 80] = 80
     hypothesis_separation_m: float = 0.3
+    # structured-site guards (core/pair_checks.py, inferred; spec 7.3, 11): reject a result
+    # whose matched features fix a horizontal direction with less than min_support_m of
+    # feature (only parallel wall lines: pair 87), or (max_rival_ratio set) that a credible
+    # alignment farther than rival_exclusion_m nearly equals (a pillar row shifted by its
+    # period: pair 43)
+    min_support_m: float = 1.0
+    max_rival_ratio: float | None = None
+    rival_exclusion_m: float = 1.0
     max_cells: int = 60_000  # a level keeping more cells than this is reported as ambiguous
     min_matched_stems: int = 4  # (inferred) distinct features supporting an accepted result
     # (beyond the thesis, its spec 9 "future source"): dz of accepted pairs from the ground grids
@@ -181,11 +189,14 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "circles": {"symmetry_threshold_m": 0.0041},
         "cylinders": {"min_length_m": 0.3, "curvature_deg": 10.0},
         "registration": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156,
-                         "min_matched_stems": 3},
+                         "min_matched_stems": 3, "max_rival_ratio": 0.6},
     },
     "indoor": {
         "segmentation": {"min_width_m": 0.2},
-        "circles": {"symmetry_threshold_m": 0.0007},
+        # (inferred) with 2.5 cm range noise the linear fit's mean signed residual is biased by
+        # sigma^2/(2r) = 1.6 mm on a 0.192 m pillar, above the 0.7 mm threshold: the "mean"
+        # statistic rejects every simulated pillar (benchmarks/results.md, "Structured sites")
+        "circles": {"symmetry_threshold_m": 0.0007, "symmetry_statistic": "noise_corrected"},
         "cylinders": {"min_length_m": 1.0, "curvature_deg": 12.0},
         "lines": {
             "cell_m": 0.1,
@@ -195,7 +206,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "min_length_m": 2.0,
         },
         "registration": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195,
-                         "min_matched_stems": 2},
+                         "min_matched_stems": 2, "max_rival_ratio": 0.6},
     },
 }
 

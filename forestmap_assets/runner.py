@@ -1,40 +1,66 @@
 """Materialising a campaign through Dagster (``forestmap run`` and ``forestmap status``).
 
-Per-scan assets run as one Dagster run per scan partition (so a corrupt scan fails only its
-own partitions), then the campaign-level assets run once. Only what is missing or stale
-(Dagster's code-version and data-version lineage) is executed; everything else is reused.
+:func:`run_campaign` works in waves. In each wave it asks Dagster's stale-status resolver which
+asset partitions are missing or stale *by their own cause* (a new code version, i.e. stage
+version + parameter hash, or an input whose data version changed), launches exactly those, and
+asks again: a stage whose re-run reproduced the same content hash leaves its downstream fresh,
+so nothing further runs. Per-scan assets run as one Dagster run per scan partition (so a corrupt
+scan fails only its own partitions); campaign-level assets run after the scans, in one run per
+wave. Every run is a real Dagster run in the persistent instance (visible in the UI), launched
+with ``execute_job`` on a reconstructable job so that Dagster's multiprocess and Dask executors
+run the same code. Two runs of one campaign do not overlap: a per-campaign lock in the instance
+folder makes the second wait, after which it finds everything fresh.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import multiprocessing
 import os
+import sys
+import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+import uuid
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dagster import AssetKey, DagsterInstance, Definitions, materialize
+from dagster import AssetObservation, DagsterEventType, DagsterInstance, Definitions
 from dagster._core.asset_graph_view.asset_graph_view import AssetGraphView, TemporalContext
-from dagster._core.definitions.data_version import CachingStaleStatusResolver, StaleStatus
-from dagster._core.definitions.observe import observe
+from dagster._core.definitions.data_version import (
+    DATA_VERSION_TAG,
+    CachingStaleStatusResolver,
+    StaleStatus,
+)
+from dagster._core.definitions.reconstruct import ReconstructableJob, build_reconstructable_job
+from dagster._core.execution.api import (
+    _check_execute_job_args,
+    _job_with_repository_load_data,
+    execute_run_iterator,
+)
+from dagster._core.storage.defs_state.base import set_defs_state_storage
 from dagster._time import get_current_datetime
 
-from .assets.common import PIPELINE, asset_key, scan_partitions
+from .assets.common import PIPELINE, asset_key, job_name, scan_partitions
 from .campaign import Campaign, load_campaign
-from .definitions import build_definitions
-from .io.store import forestmap_home
+from .io.store import default_store_url, forestmap_home
+from .workspace import EXECUTORS, build_definitions
 
 Progress = Callable[[str], None]
 
-
+CAMPAIGN_TAG = "forestmap/campaign"
+SCAN_TAG = "forestmap/scan"
+SESSION_TAG = "forestmap/session"
 QUIET = {"loggers": {"console": {"config": {"log_level": "CRITICAL"}}}}
 
 
 def get_instance() -> DagsterInstance:
     """Persistent instance: ``$DAGSTER_HOME`` if set, else ``<forestmap home>/dagster``.
 
-    A new home gets a ``dagster.yaml`` with telemetry off (embedded SQLite storage).
+    A new home gets a ``dagster.yaml`` with telemetry and the UI's welcome dialog off and the
+    engine's console chatter at WARNING (embedded SQLite storage; run logs are kept in full).
     """
     if not os.environ.get("DAGSTER_HOME"):
         os.environ["DAGSTER_HOME"] = str(forestmap_home() / "dagster")
@@ -42,8 +68,24 @@ def get_instance() -> DagsterInstance:
     home.mkdir(parents=True, exist_ok=True)
     config = home / "dagster.yaml"
     if not config.exists():
-        config.write_text("telemetry:\n  enabled: false\n")
+        # engine chatter of step subprocesses at WARNING; run logs are kept in full regardless
+        config.write_text(
+            "telemetry:\n  enabled: false\nnux:\n  enabled: false\n"
+            "python_logs:\n  python_log_level: WARNING\n"
+        )
     return DagsterInstance.get()
+
+
+def campaign_job(folder: str, store_url: str, executor: str, kind: str):
+    """Reconstructor of a campaign's asset job (``kind`` ``scan`` or ``campaign``): every
+    process that executes a step (multiprocess children, Dask workers) rebuilds it from the
+    campaign folder, so the same code runs wherever the step lands."""
+    campaign = load_campaign(folder)
+    defs = build_definitions([campaign], store_url, executor=executor)
+    return defs.resolve_job_def(job_name(campaign, kind))
+
+
+# --- state of the assets ---------------------------------------------------------------------
 
 
 @dataclass
@@ -51,26 +93,125 @@ class StageState:
     stage: str
     granularity: str
     built: bool
-    state: str  # missing | stale | fresh | not built
+    state: str  # missing | stale | fresh
     per_partition: dict[str, str] = field(default_factory=dict)
 
 
-@dataclass
-class RunSummary:
-    campaign: Campaign
-    ran: list[tuple[str, str | None]] = field(default_factory=list)  # (stage, partition)
-    failures: list[tuple[str, str | None, str]] = field(default_factory=list)
-    not_built: list[str] = field(default_factory=list)
-    seconds: float = 0.0
-
-
-def _assets_by_stage(defs: Definitions, campaign: Campaign) -> dict[str, object]:
+def campaign_stages(defs: Definitions, campaign: Campaign) -> list[tuple[str, str]]:
+    """Every materialisable asset of the campaign as (stage, ``scan`` | ``campaign``): the
+    stages of DESIGN.md section 5 in that order, then any further stage in graph order."""
     graph = defs.resolve_asset_graph()
+    order = {s: i for i, (s, _) in enumerate(PIPELINE)}
+    found = [
+        (k.path[-1], "scan" if graph.get(k).is_partitioned else "campaign")
+        for k in graph.toposorted_asset_keys
+        if len(k.path) == 2 and k.path[0] == campaign.key and graph.get(k).is_materializable
+    ]
+    rank = {s: (order.get(s, len(order)), i) for i, (s, _) in enumerate(found)}
+    return sorted(found, key=lambda sg: rank[sg[0]])
+
+
+def stage_parents(defs: Definitions, campaign: Campaign) -> dict[str, list[str]]:
+    """For every stage of the campaign, the stages it reads (from the Dagster asset graph)."""
+    graph = defs.resolve_asset_graph()
+    names = {asset_key(campaign, s): s for s, _ in campaign_stages(defs, campaign)}
+    return {stage: sorted(names[k] for k in graph.get(key).parent_keys if k in names) for key, stage in names.items()}
+
+
+def _resolver(defs: Definitions, instance: DagsterInstance) -> CachingStaleStatusResolver:
+    return resolver_for_graph(defs.resolve_asset_graph(), instance)
+
+
+def resolver_for_graph(graph, instance: DagsterInstance) -> CachingStaleStatusResolver:
+    """Dagster's stale-status resolver on an asset graph (as the UI computes staleness)."""
+    view = AssetGraphView(
+        temporal_context=TemporalContext(effective_dt=get_current_datetime(), last_event_id=None),
+        instance=instance,
+        asset_graph=graph,
+    )
+    return CachingStaleStatusResolver(instance=instance, asset_graph=graph, loading_context=view)
+
+
+def changed_scan_files(campaign: Campaign, instance: DagsterInstance, resolver=None, defs=None) -> dict[str, str]:
+    """Scans whose file content (or tilt) differs from the last observed ``scan_files`` version:
+    ``{scan id: new fingerprint}``."""
+    resolver = resolver or _resolver(defs or build_definitions([campaign]), instance)
+    key = asset_key(campaign, "scan_files")
     out = {}
-    for stage, _ in PIPELINE:
+    for sid in campaign.scan_ids:
+        try:
+            fp = campaign.scan_fingerprint(sid)
+        except OSError:
+            fp = "missing"
+        if resolver.get_current_data_version(key, sid).value != fp:
+            out[sid] = fp
+    return out
+
+
+def observe_scan_files(instance: DagsterInstance, campaign: Campaign, changed: dict[str, str]) -> None:
+    """Record the new content hashes of changed scan files (runless observations of the
+    ``scan_files`` source asset), which makes exactly those scans' range images stale."""
+    key = asset_key(campaign, "scan_files")
+    for sid, fp in changed.items():
+        instance.report_runless_asset_event(
+            AssetObservation(asset_key=key, partition=sid, tags={DATA_VERSION_TAG: fp})
+        )
+
+
+def direct_states(
+    defs: Definitions, campaign: Campaign, instance: DagsterInstance, check_files: bool = True
+) -> dict[tuple[str, str | None], str]:
+    """Dagster's own status of every (stage, scan) and (stage, None): ``missing``, ``stale``
+    (a cause of its own: new code version, or an input with a new data version) or ``fresh``;
+    ``check_files`` also hashes the scan files (a changed, not yet observed file: stale)."""
+    resolver = _resolver(defs, instance)
+    stages = campaign_stages(defs, campaign)
+    resolver.instance_queryer.prefetch_asset_records([asset_key(campaign, s) for s, _ in stages])
+    out: dict[tuple[str, str | None], str] = {}
+    for stage, granularity in stages:
         key = asset_key(campaign, stage)
-        if graph.has(key):
-            out[stage] = key
+        for part in campaign.scan_ids if granularity == "scan" else [None]:
+            status = resolver.get_status(key, part)
+            out[(stage, part)] = {StaleStatus.MISSING: "missing", StaleStatus.STALE: "stale"}.get(status, "fresh")
+    changed = changed_scan_files(campaign, instance, resolver) if check_files else {}
+    for sid in changed:  # a changed file not yet observed: its range image is stale
+        if out.get(("range_images", sid)) == "fresh":
+            out[("range_images", sid)] = "stale"
+    return out
+
+
+def stage_states(defs: Definitions, campaign: Campaign, instance: DagsterInstance) -> list[StageState]:
+    """State of every pipeline stage as ``forestmap status`` prints it (DESIGN.md section 3).
+
+    A partition is ``stale`` if Dagster reports a cause of its own or if anything it reads is
+    missing or stale (so the effect of a parameter change shows all the way down); a per-scan
+    asset is ``missing`` if any scan's partition is, else ``stale`` if any is.
+    """
+    direct = direct_states(defs, campaign, instance)
+    parents = stage_parents(defs, campaign)
+    stages = campaign_stages(defs, campaign)
+    granularity = dict(stages)
+    effective: dict[tuple[str, str | None], str] = {}
+    for stage, g in stages:
+        for part in campaign.scan_ids if g == "scan" else [None]:
+            state = direct[(stage, part)]
+            if state == "fresh":
+                upstream = [
+                    effective[(p, q)]
+                    for p in parents[stage]
+                    for q in ([part] if granularity[p] == g or part is not None else campaign.scan_ids)
+                ]
+                state = "stale" if any(u != "fresh" for u in upstream) else "fresh"
+            effective[(stage, part)] = state
+    out = []
+    for stage, g in stages:
+        if g == "scan":
+            per = {sid: effective[(stage, sid)] for sid in campaign.scan_ids}
+            values = set(per.values())
+            state = "missing" if "missing" in values else "stale" if "stale" in values else "fresh"
+            out.append(StageState(stage, g, True, state, per))
+        else:
+            out.append(StageState(stage, g, True, effective[(stage, None)]))
     return out
 
 
@@ -78,97 +219,258 @@ def sync_partitions(instance: DagsterInstance, campaign: Campaign) -> None:
     """Make the campaign's dynamic scan partitions match its manifest."""
     name = scan_partitions(campaign).name
     existing = set(instance.get_dynamic_partitions(name))
-    wanted = campaign.scan_ids
-    new = [s for s in wanted if s not in existing]
+    new = [s for s in campaign.scan_ids if s not in existing]
     if new:
         instance.add_dynamic_partitions(name, new)
-    for gone in existing - set(wanted):
+    for gone in existing - set(campaign.scan_ids):
         instance.delete_dynamic_partition(name, gone)
 
 
-def observe_scan_files(defs: Definitions, campaign: Campaign, instance: DagsterInstance) -> None:
-    """Record the content hash of every scan file, so changed files make their assets stale."""
-    graph = defs.resolve_asset_graph()
-    source = graph.get(AssetKey([campaign.key, "scan_files"]))
-    assets = [a for a in defs.assets if getattr(a, "key", None) == source.key]
-    observe(assets, instance=instance, resources=defs.resources, run_config=QUIET)
+# --- running -----------------------------------------------------------------------------------
 
 
-def stage_states(defs: Definitions, campaign: Campaign, instance: DagsterInstance) -> list[StageState]:
-    """State of every pipeline stage (DESIGN.md section 3 rules for per-scan assets)."""
-    graph = defs.resolve_asset_graph()
-    view = AssetGraphView(
-        temporal_context=TemporalContext(effective_dt=get_current_datetime(), last_event_id=None),
-        instance=instance,
-        asset_graph=graph,
-    )
-    resolver = CachingStaleStatusResolver(instance=instance, asset_graph=graph, loading_context=view)
-    built = _assets_by_stage(defs, campaign)
-    states = []
-    for stage, granularity in PIPELINE:
-        if stage not in built:
-            states.append(StageState(stage, granularity, False, "not built"))
-            continue
-        key = built[stage]
-        if granularity == "scan":
-            per = {sid: _status(resolver, key, sid) for sid in campaign.scan_ids}
-            values = set(per.values())
-            state = "missing" if "missing" in values else "stale" if "stale" in values else "fresh"
-            states.append(StageState(stage, granularity, True, state, per))
-        else:
-            states.append(StageState(stage, granularity, True, _status(resolver, key, None)))
-    return states
+@dataclass
+class RunSummary:
+    campaign: Campaign
+    ran: list[tuple[str, str | None]] = field(default_factory=list)  # (stage, partition)
+    failures: list[tuple[str, str | None, str]] = field(default_factory=list)  # stage, scan, reason
+    check_failures: list[tuple[str, str | None, str, str]] = field(default_factory=list)
+    run_ids: list[str] = field(default_factory=list)
+    not_built: list[str] = field(default_factory=list)
+    seconds: float = 0.0
 
 
-def _status(resolver: CachingStaleStatusResolver, key, partition: str | None) -> str:
-    status = resolver.get_status(key, partition)
-    return {StaleStatus.MISSING: "missing", StaleStatus.STALE: "stale"}.get(status, "fresh")
+@contextlib.contextmanager
+def campaign_lock(instance: DagsterInstance, campaign: Campaign, progress: Progress) -> Iterator[None]:
+    """Exclusive lock per campaign in the instance folder: a second ``forestmap run`` of the same
+    campaign waits for the first, then finds its work done."""
+    folder = Path(instance.root_directory) / "locks"
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / f"{campaign.key}.lock", "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            progress(f"{campaign.name}: another run of this campaign is in progress; waiting for it")
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
-def _materialize_scan(folder: str, scan_id: str, stages: list[str], store_url: str | None) -> tuple[bool, str]:
-    """Run the given per-scan stages for one scan partition (also used in worker processes)."""
-    campaign = load_campaign(folder)
-    defs = build_definitions([campaign], store_url)
-    instance = get_instance()
-    selection = [asset_key(campaign, s) for s in stages]
-    result = materialize(
-        list(defs.assets),
-        instance=instance,
-        partition_key=scan_id,
-        selection=selection,
-        resources=defs.resources,
-        run_config=QUIET,
-        raise_on_error=False,
-        tags={"forestmap/campaign": campaign.key, "forestmap/scan": scan_id},
-    )
-    if result.success:
-        return True, ""
-    return False, _failure_reason(result)
+class _Session:
+    """One ``run_campaign`` call: launches runs, follows their events, keeps the summary."""
+
+    def __init__(self, campaign, instance, executor, store_url, progress, workers, dask_address, stage_names=(),
+                 defs: Definitions | None = None):
+        self.campaign = campaign
+        self.instance = instance
+        self.executor = executor
+        self.store_url = store_url
+        self.progress = progress
+        self.workers = workers
+        self.dask_address = dask_address
+        self.defs = defs
+        self.session = uuid.uuid4().hex[:12]
+        self.summary = RunSummary(campaign)
+        self.failed: set[tuple[str, str | None]] = set()
+        self._stage_of_step = {f"{campaign.key}__{s}": s for s in stage_names}
+
+    def recon(self, kind: str):
+        return build_reconstructable_job(
+            "forestmap_assets.runner",
+            "campaign_job",
+            reconstructable_args=(str(self.campaign.root), self.store_url, self.executor, kind),
+        )
+
+    def run_config(self, concurrent_runs: int) -> dict:
+        config: dict = dict(QUIET)
+        if self.executor == "multiprocess":
+            per_run = max(1, self.workers // max(concurrent_runs, 1))
+            config["execution"] = {"config": {
+                "max_concurrent": per_run,
+                # children fork from a server that has imported forestmap once
+                "start_method": {"forkserver": {"preload_modules": ["forestmap_assets.runner"]}},
+            }}
+        elif self.executor == "dask":
+            config["execution"] = {"config": {"cluster": {"existing": {"address": self.dask_address}}}}
+        return config
+
+    def execute(self, kind: str, stages: list[str], partition: str | None, concurrent_runs: int) -> bool:
+        """One Dagster run of the given stages (one scan partition, or campaign level)."""
+        tags = {CAMPAIGN_TAG: self.campaign.key, SESSION_TAG: self.session}
+        if partition is not None:
+            tags.update({"dagster/partition": partition, SCAN_TAG: partition})
+        if self.executor == "in_process" and self.defs is not None:
+            # in this process: the job as already built (no reconstruction)
+            job_arg, load_data = self.defs.resolve_job_def(job_name(self.campaign, kind)), None
+        else:  # rebuilt from the campaign folder in every process that runs a step
+            job_arg, load_data = _job_with_repository_load_data(self.recon(kind))
+        job_arg, run_config, tags, resolved, op_selection = _check_execute_job_args(
+            job_arg=job_arg, run_config=self.run_config(concurrent_runs), tags=tags, op_selection=None
+        )
+        run = self.instance.create_run_for_job(
+            job_def=job_arg.get_definition(),
+            run_config=run_config,
+            op_selection=op_selection,
+            resolved_op_selection=resolved,
+            tags=tags,
+            job_code_origin=job_arg.get_python_origin() if isinstance(job_arg, ReconstructableJob) else None,
+            repository_load_data=load_data,
+            asset_selection=frozenset(asset_key(self.campaign, s) for s in stages),
+        )
+        self.summary.run_ids.append(run.run_id)
+        where = f"[{partition}] " if partition else ""
+        failed_steps: set[str] = set()
+        run_failure = ""
+        for event in execute_run_iterator(job_arg, run, self.instance):
+            stage = self._stage_of_step.get(event.step_key or "")
+            if event.event_type == DagsterEventType.ASSET_MATERIALIZATION:
+                mat = event.step_materialization_data.materialization
+                name = mat.asset_key.path[-1]
+                self.summary.ran.append((name, mat.partition))
+            elif event.event_type == DagsterEventType.STEP_SUCCESS and stage:
+                seconds = event.event_specific_data.duration_ms / 1000.0
+                self.progress(f"  {where}{stage} ({seconds:.1f} s)")
+            elif event.event_type == DagsterEventType.STEP_FAILURE and stage:
+                reason = _step_failure_reason(event)
+                failed_steps.add(stage)
+                self.failed.add((stage, partition))
+                self.summary.failures.append((stage, partition, reason))
+                self.progress(f"  {where}{stage} FAILED: {reason}")
+            elif event.event_type == DagsterEventType.ASSET_CHECK_EVALUATION:
+                ev = event.event_specific_data
+                if not ev.passed:
+                    text = ", ".join(f"{k}={v.value}" for k, v in ev.metadata.items() if not isinstance(v.value, dict))
+                    owner = ev.asset_key.path[-1]
+                    self.summary.check_failures.append((owner, partition, ev.check_name, ev.severity.value))
+                    self.progress(f"  {where}check {owner}.{ev.check_name} failed ({ev.severity.value}): {text}")
+            elif event.event_type == DagsterEventType.RUN_FAILURE:
+                err = getattr(event.event_specific_data, "error", None)
+                text = err.message if err is not None and err.message else event.message
+                run_failure = (text or "run failed").strip().splitlines()[0]
+        done = self.instance.get_run_by_id(run.run_id)
+        ok = bool(done and done.is_success)
+        if not ok:
+            # steps that never ran because something upstream failed
+            for stage in stages:
+                if stage not in failed_steps and (stage, partition) not in set(self.summary.ran):
+                    self.failed.add((stage, partition))
+            if not failed_steps:
+                first = stages[0]
+                self.summary.failures.append((first, partition, run_failure or "run failed"))
+                self.progress(f"  {where}run FAILED: {run_failure or 'run failed'}")
+        return ok
+
+    def run_scans(self, todo: dict[str, list[str]]) -> None:
+        """One run per scan: here one after another, or side by side in worker processes
+        (Dagster's run machinery is not thread-safe, so no threads)."""
+        if self.executor == "in_process" or len(todo) == 1:
+            for sid, stages in todo.items():
+                self.execute("scan", stages, sid, 1)
+            return
+        n = len(todo) if self.executor == "dask" else min(len(todo), self.workers)
+        # forked workers start at once (this process has imported everything); they are all
+        # forked at the first submit, before this process starts any thread of its own
+        ctx = multiprocessing.get_context("fork")
+        queue = ctx.Queue()
+        base = (str(self.campaign.root), self.instance.get_ref(), self.executor, self.store_url,
+                self.workers, self.dask_address, self.session)
+        drain = threading.Thread(target=_drain, args=(queue, self.progress), daemon=True)
+        try:
+            with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker,
+                                     initargs=(queue,)) as pool:
+                futures = [pool.submit(_scan_worker, base, sid, stages, n) for sid, stages in todo.items()]
+                drain.start()
+                for fut in futures:
+                    ran, failures, checks, failed, run_ids = fut.result()
+                    self.summary.ran.extend(ran)
+                    self.summary.failures.extend(failures)
+                    self.summary.check_failures.extend(checks)
+                    self.summary.run_ids.extend(run_ids)
+                    self.failed |= failed
+        finally:
+            queue.put(None)
+            if drain.is_alive():
+                drain.join(timeout=5)
 
 
-def _materialize_campaign_stage(defs: Definitions, campaign: Campaign, instance: DagsterInstance, stage: str) -> tuple[bool, str]:
-    result = materialize(
-        list(defs.assets),
-        instance=instance,
-        selection=[asset_key(campaign, stage)],
-        resources=defs.resources,
-        run_config=QUIET,
-        raise_on_error=False,
-        tags={"forestmap/campaign": campaign.key},
-    )
-    return (True, "") if result.success else (False, _failure_reason(result))
+_QUEUE = None
 
 
-def _failure_reason(result) -> str:
-    for event in result.all_events:
-        if event.is_step_failure:
-            data = event.step_failure_data
-            err = data.error
-            text = (data.user_failure_data.description if data.user_failure_data else None) or (
-                err.message if err else "failed"
-            )
-            return f"{event.step_key}: {text.strip().splitlines()[0]}"
-    return "run failed"
+def _init_worker(queue) -> None:
+    global _QUEUE
+    _QUEUE = queue
+
+
+def _drain(queue, progress: Progress) -> None:
+    while (line := queue.get()) is not None:
+        progress(line)
+
+
+def _scan_worker(base: tuple, sid: str, stages: list[str], concurrent_runs: int):
+    """One scan's run in a worker process; returns what the parent session records."""
+    folder, ref, executor, store_url, workers, dask_address, session_id = base
+    with DagsterInstance.from_ref(ref) as instance:
+        session = _Session(load_campaign(folder), instance, executor, store_url,
+                           _QUEUE.put if _QUEUE is not None else print, workers, dask_address, stages)
+        session.session = session_id
+        session.execute("scan", stages, sid, concurrent_runs)
+        s = session.summary
+        return s.ran, s.failures, s.check_failures, session.failed, s.run_ids
+
+
+def _step_failure_reason(event) -> str:
+    """One line: the user's ``Failure`` description, else the innermost error under Dagster's
+    wrappers (e.g. ``OSError: ...`` raised while storing an output)."""
+    data = event.step_failure_data
+    if data.user_failure_data and data.user_failure_data.description:
+        text = data.user_failure_data.description
+    else:
+        err = data.error
+        while err is not None and err.cls_name and err.cls_name.startswith("Dagster") and err.cause:
+            err = err.cause
+        text = err.message if err is not None else "failed"
+        if err is not None and os.environ.get("FORESTMAP_DEBUG"):
+            print("".join(err.stack), file=sys.stderr)
+    return (text or "failed").strip().splitlines()[0]
+
+
+def _safe_subset(candidates: set[str], parents: dict[str, list[str]]) -> set[str]:
+    """Candidates that may run in one wave: drop a stage that reads a non-candidate stage which
+    itself lies downstream of a candidate (it would read an input about to change)."""
+    def downstream_of_candidate(stage: str, seen: set[str]) -> bool:
+        for p in parents.get(stage, []):
+            if p in chosen or (p not in seen and downstream_of_candidate(p, seen | {p})):
+                return True
+        return False
+
+    chosen = set(candidates)
+    changed = True
+    while changed:
+        changed = False
+        for stage in sorted(chosen):
+            if any(p not in chosen and downstream_of_candidate(p, {p}) for p in parents.get(stage, [])):
+                chosen.discard(stage)
+                changed = True
+    return chosen
+
+
+@contextlib.contextmanager
+def _dask_cluster(address: str | None, workers: int, progress: Progress) -> Iterator[str]:
+    """The Dask scheduler address: ``address`` / ``$FORESTMAP_DASK_ADDRESS``, else a local
+    cluster (one single-threaded worker process per core) for this session."""
+    address = address or os.environ.get("FORESTMAP_DASK_ADDRESS")
+    if address:
+        yield address
+        return
+    try:
+        from dask.distributed import LocalCluster
+    except ImportError:
+        raise ValueError("--executor dask needs dask.distributed (pip install dagster-dask)") from None
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        progress(f"  dask: local cluster {cluster.scheduler_address} with {workers} workers")
+        yield cluster.scheduler_address
 
 
 def run_campaign(
@@ -177,69 +479,90 @@ def run_campaign(
     executor: str = "in_process",
     store_url: str | None = None,
     progress: Progress = print,
+    instance: DagsterInstance | None = None,
+    workers: int | None = None,
+    dask_address: str | None = None,
+    stages: list[str] | None = None,
 ) -> RunSummary:
-    """Materialise every missing or stale asset of a campaign."""
+    """Materialise every missing or stale asset of a campaign, and nothing else.
+
+    ``stages`` limits the work to those stages and what they read (default: all).
+
+    ``executor``: ``in_process`` (one run after another in this process), ``multiprocess``
+    (Dagster's multiprocess executor, scans' runs side by side, ``workers`` processes in all) or
+    ``dask`` (dagster-dask on the cluster at ``dask_address`` / ``$FORESTMAP_DASK_ADDRESS``, else a
+    local cluster; put the store on a path every worker sees: ``$FORESTMAP_STORE``).
+    """
+    if executor not in EXECUTORS:
+        raise ValueError(f"--executor: {executor!r} is not one of {', '.join(EXECUTORS)}")
     start = time.perf_counter()
     campaign = load_campaign(folder)
-    defs = build_definitions([campaign], store_url)
-    instance = get_instance()
-    sync_partitions(instance, campaign)
-    observe_scan_files(defs, campaign, instance)
-    summary = RunSummary(campaign)
-    states = stage_states(defs, campaign, instance)
-    summary.not_built = [s.stage for s in states if not s.built]
+    instance = instance or get_instance()
+    store_url = store_url or default_store_url()
+    workers = workers or os.cpu_count() or 2
+    defs = build_definitions([campaign], store_url, executor=executor)
+    # resolve definitions against this instance (not a stale one a caller left in the context)
+    with set_defs_state_storage(instance.defs_state_storage):
+        return _run(campaign, defs, instance, executor, store_url, progress, workers, dask_address, stages, start)
 
-    scan_stages = [s for s in states if s.built and s.granularity == "scan"]
-    todo: dict[str, list[str]] = {}
-    for sid in campaign.scan_ids:
-        stale = [s.stage for s in scan_stages if s.per_partition.get(sid) != "fresh"]
-        if stale:
-            todo[sid] = stale
-    fresh = len(campaign.scan_ids) - len(todo)
-    progress(f"{campaign.name}: {len(campaign.scan_ids)} scans, {len(todo)} to process, {fresh} up to date")
 
-    def done(sid: str, ok: bool, reason: str, seconds: float) -> None:
-        if ok:
-            summary.ran.extend((s, sid) for s in todo[sid])
-            progress(f"  scan {sid}: {', '.join(todo[sid])} ({seconds:.1f} s)")
-        else:
-            summary.failures.append((reason.split(":")[0], sid, reason))
-            progress(f"  scan {sid}: FAILED {reason}")
-
-    if executor == "multiprocess" and len(todo) > 1:
-        with ProcessPoolExecutor(max_workers=min(len(todo), os.cpu_count() or 2)) as pool:
-            t0 = time.perf_counter()
-            futures = {
-                pool.submit(_materialize_scan, str(campaign.root), sid, stages, store_url): sid
-                for sid, stages in todo.items()
-            }
-            for fut in as_completed(futures):
-                ok, reason = fut.result()
-                done(futures[fut], ok, reason, time.perf_counter() - t0)
-    elif executor in ("in_process", "multiprocess"):
-        for sid, stages in todo.items():
-            t0 = time.perf_counter()
-            ok, reason = _materialize_scan(str(campaign.root), sid, stages, store_url)
-            done(sid, ok, reason, time.perf_counter() - t0)
-    else:
-        raise ValueError(f"--executor: {executor!r} is not available (in_process, multiprocess)")
-
-    # campaign-level stages, in pipeline order, each only if it is missing or stale now
-    for stage, granularity in PIPELINE:
-        if granularity != "campaign" or stage in summary.not_built:
-            continue
-        state = {s.stage: s for s in stage_states(defs, campaign, instance)}[stage]
-        if state.state == "fresh":
-            continue
-        t0 = time.perf_counter()
-        progress(f"  {stage} ...")
-        ok, reason = _materialize_campaign_stage(defs, campaign, instance, stage)
-        if not ok:
-            summary.failures.append((stage, None, reason))
-            progress(f"  {stage}: FAILED {reason}")
-            break
-        summary.ran.append((stage, None))
-        progress(f"  {stage} ({time.perf_counter() - t0:.1f} s)")
-
+def _run(campaign, defs, instance, executor, store_url, progress, workers, dask_address, stages, start) -> RunSummary:
+    parents = stage_parents(defs, campaign)
+    stages_all = campaign_stages(defs, campaign)
+    if stages is not None:
+        unknown = sorted(set(stages) - {s for s, _ in stages_all})
+        if unknown:
+            raise ValueError(f"unknown stage {unknown[0]!r} (stages: {', '.join(s for s, _ in stages_all)})")
+        wanted = set(stages)
+        for stage, _ in reversed(stages_all):
+            if stage in wanted:
+                wanted |= set(parents[stage])
+        stages_all = [(s, g) for s, g in stages_all if s in wanted]
+    granularity = dict(stages_all)
+    scan_stages = [s for s, g in stages_all if g == "scan"]
+    level_stages = [s for s, g in stages_all if g == "campaign"]
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(campaign_lock(instance, campaign, progress))
+        if executor == "dask":
+            dask_address = stack.enter_context(_dask_cluster(dask_address, workers, progress))
+        session = _Session(campaign, instance, executor, store_url, progress, workers, dask_address,
+                           [s for s, _ in stages_all], defs)
+        summary = session.summary
+        sync_partitions(instance, campaign)
+        observe_scan_files(instance, campaign, changed_scan_files(campaign, instance, defs=defs))
+        attempted: set[tuple[str, str | None]] = set()
+        first = True
+        while True:
+            states = direct_states(defs, campaign, instance, check_files=False)
+            due = {k for k, v in states.items() if v != "fresh" and k not in attempted and k[0] in granularity}
+            # never retry what failed, nor what reads something that failed in this session
+            blocked = set(session.failed)
+            for stage, g in stages_all:
+                for part in campaign.scan_ids if g == "scan" else [None]:
+                    if any((p, part) in blocked for p in parents.get(stage, []) if granularity[p] == g):
+                        blocked.add((stage, part))
+            due -= blocked
+            scans: dict[str, list[str]] = {}
+            for sid in campaign.scan_ids:
+                wanted = {s for s in scan_stages if (s, sid) in due}
+                chosen = _safe_subset(wanted, {s: [p for p in parents[s] if granularity[p] == "scan"] for s in scan_stages})
+                if chosen:
+                    scans[sid] = [s for s in scan_stages if s in chosen]
+            if first:
+                fresh = sum(1 for sid in campaign.scan_ids if sid not in scans)
+                progress(f"{campaign.name}: {len(campaign.scan_ids)} scans, {len(scans)} to process, {fresh} up to date")
+                first = False
+            if scans:
+                attempted |= {(s, sid) for sid, stages in scans.items() for s in stages}
+                session.run_scans(scans)
+                continue
+            level = _safe_subset({s for s in level_stages if (s, None) in due},
+                                 {s: [p for p in parents[s] if granularity[p] == "campaign"] for s in level_stages})
+            if not level:
+                break
+            stages = [s for s in level_stages if s in level]
+            attempted |= {(s, None) for s in stages}
+            progress(f"  campaign: {', '.join(stages)}")
+            session.execute("campaign", stages, None, 1)
     summary.seconds = time.perf_counter() - start
     return summary

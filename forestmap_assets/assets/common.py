@@ -1,16 +1,25 @@
-"""Shared pieces of the thin Dagster layer: partitions, versions, metadata helpers."""
+"""Shared pieces of the thin Dagster layer: partitions, jobs, versions, checks, metadata."""
 
 from __future__ import annotations
 
 import base64
 import hashlib
 import io
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-from dagster import AssetKey, DataVersion, DynamicPartitionsDefinition, MetadataValue
+from dagster import (
+    AssetCheckResult,
+    AssetCheckSeverity,
+    AssetCheckSpec,
+    AssetKey,
+    DataVersion,
+    DynamicPartitionsDefinition,
+    MetadataValue,
+)
 
 from ..campaign import Campaign
 
@@ -75,19 +84,60 @@ def asset_key(campaign: Campaign, stage: str) -> AssetKey:
     return AssetKey([campaign.key, stage])
 
 
+# Which entries of campaign.yaml (besides ``params``) each campaign-level stage reads (inferred):
+# the ordered scan list (the first scan is the reference frame; adding or removing a scan changes
+# what the stage computes), the a priori pairs and the a priori poses.
+STAGE_MANIFEST: dict[str, tuple[str, ...]] = {
+    "candidate_pairs": ("scans", "pairs", "a_priori"),
+    "optimal_map": ("scans",),
+}
+
+SCAN_STAGES: tuple[str, ...] = tuple(s for s, g in PIPELINE if g == "scan")
+CAMPAIGN_STAGES: tuple[str, ...] = tuple(s for s, g in PIPELINE if g == "campaign")
+
+
+def manifest_digest(campaign: Campaign, entries: tuple[str, ...]) -> str:
+    """Short hash of the named manifest entries (``scans``, ``pairs``, ``a_priori``)."""
+    parts: dict[str, object] = {}
+    if "scans" in entries:
+        parts["scans"] = campaign.scan_ids
+    if "pairs" in entries:
+        parts["pairs"] = [(p.scan, p.reference, list(p.a_priori)) for p in campaign.pairs]
+    if "a_priori" in entries:
+        parts["a_priori"] = {s.id: list(s.a_priori) for s in campaign.scans if s.a_priori is not None}
+    return hashlib.sha256(repr(sorted(parts.items())).encode()).hexdigest()[:16]
+
+
 def code_version(campaign: Campaign, stage: str) -> str:
-    """Stage code version plus the hash of its resolved parameter sections."""
+    """Stage code version plus the hash of its resolved parameter sections and of the
+    manifest entries it reads (``STAGE_MANIFEST``)."""
     digests = [campaign.params.digest(s) for s in STAGE_PARAMS[stage]]
+    if STAGE_MANIFEST.get(stage):
+        digests.append("m" + manifest_digest(campaign, STAGE_MANIFEST[stage]))
     return "-".join([f"v{CODE_VERSIONS[stage]}", *digests])
 
 
+def job_name(campaign: Campaign, kind: str) -> str:
+    """Name of a campaign's asset job: ``kind`` is ``scan`` (per-scan assets, partitioned by
+    scan) or ``campaign`` (campaign-level assets)."""
+    return f"{campaign.key}__{kind}_assets"
+
+
+# Columns that record how long something took, not what was computed: left out of data versions
+# so that re-running a stage that produces the same result does not make its downstream stale.
+VOLATILE_COLUMNS: frozenset[str] = frozenset({"seconds"})
+
+
 def data_version(obj: Any) -> DataVersion:
-    """Content hash of an asset output (table or bundle of tables)."""
+    """Content hash of an asset output (table or bundle of tables), ``VOLATILE_COLUMNS`` left out."""
     h = hashlib.sha256()
 
     def feed(table: pd.DataFrame | pa.Table) -> None:
         if isinstance(table, pd.DataFrame):
             table = pa.Table.from_pandas(table, preserve_index=False)
+        volatile = [c for c in table.column_names if c in VOLATILE_COLUMNS]
+        if volatile:
+            table = table.drop_columns(volatile)
         h.update(str(table.schema).encode())
         for meta in (table.schema.metadata or {}).items():
             h.update(b"".join(meta))
@@ -136,3 +186,84 @@ def range_image_figure(range_m: np.ndarray, title: str, overlay: np.ndarray | No
     ax.set_xlabel("column (azimuth)")
     ax.set_ylabel("row (elevation)")
     return fig
+
+
+# --- per-scan asset checks (circle_models, cylinder_segments) -------------------------------
+
+
+@dataclass(frozen=True)
+class ScanCheckThresholds:
+    """Thresholds of the per-scan asset checks (inferred; the thesis reports no such limits).
+
+    A scan with fewer valid circle models or cylinder segments than these can still be used,
+    but its registrations rest on few stems (a 4-DoF alignment needs at least two well-separated
+    stems; three make it checkable). A high share of rejected circle models usually means the
+    environment preset or the noise level does not fit the scanner.
+    """
+
+    min_valid_circles: int = 50
+    max_rejected_share: float = 0.8
+    min_cylinders: int = 3
+
+
+def scan_check_thresholds(campaign: Campaign) -> ScanCheckThresholds:
+    """The campaign's check thresholds: ``params.checks`` where the parameter model has that
+    section, else the defaults of :class:`ScanCheckThresholds`."""
+    section = getattr(campaign.params, "checks", None)
+    if section is None:
+        return ScanCheckThresholds()
+    names = ScanCheckThresholds.__dataclass_fields__
+    return ScanCheckThresholds(**{k: getattr(section, k) for k in names if hasattr(section, k)})
+
+
+def circle_check_specs(key: AssetKey) -> list[AssetCheckSpec]:
+    """Checks of one scan's circle models (non-blocking: a weak scan is still registered or
+    reported as not registered downstream)."""
+    return [
+        AssetCheckSpec("enough_valid_circles", asset=key, description="The scan has enough valid "
+                       "circle models in the last iteration (ERROR when none, WARN when few)."),
+        AssetCheckSpec("rejected_circle_share", asset=key, description="The share of circle models "
+                       "rejected by the fit, size, convexity and symmetry tests is not too high "
+                       "(WARN: preset or noise level may not fit the scanner)."),
+    ]
+
+
+def cylinder_check_specs(key: AssetKey) -> list[AssetCheckSpec]:
+    return [
+        AssetCheckSpec("enough_cylinders", asset=key, description="The scan has enough cylinder "
+                       "segments to be registered (ERROR when none, WARN when few)."),
+    ]
+
+
+def circle_checks(table: pd.DataFrame, limits: ScanCheckThresholds) -> list[AssetCheckResult]:
+    """Results of :func:`circle_check_specs` for one scan's ``circle_models`` table."""
+    if len(table):
+        last = table[table["iteration"] == table["iteration"].max()]
+        valid = int(last["valid"].sum())
+        share = float((~last["valid"].astype(bool)).mean())
+    else:
+        valid, share = 0, 0.0
+    return [
+        AssetCheckResult(
+            check_name="enough_valid_circles", passed=valid >= limits.min_valid_circles,
+            severity=AssetCheckSeverity.ERROR if valid == 0 else AssetCheckSeverity.WARN,
+            metadata={"valid_circles": valid, "min_valid_circles": limits.min_valid_circles},
+        ),
+        AssetCheckResult(
+            check_name="rejected_circle_share", passed=share <= limits.max_rejected_share,
+            severity=AssetCheckSeverity.WARN,
+            metadata={"rejected_share": round(share, 4), "max_rejected_share": limits.max_rejected_share},
+        ),
+    ]
+
+
+def cylinder_checks(table: pd.DataFrame, limits: ScanCheckThresholds) -> list[AssetCheckResult]:
+    """Results of :func:`cylinder_check_specs` for one scan's ``cylinder_segments`` table."""
+    n = len(table)
+    return [
+        AssetCheckResult(
+            check_name="enough_cylinders", passed=n >= limits.min_cylinders,
+            severity=AssetCheckSeverity.ERROR if n == 0 else AssetCheckSeverity.WARN,
+            metadata={"cylinders": n, "min_cylinders": limits.min_cylinders},
+        ),
+    ]

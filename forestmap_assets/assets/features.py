@@ -11,9 +11,14 @@ from ..core.range_image import RangeImage
 from ..figures import circle_mask, range_mask_figure
 from .common import (
     asset_key,
+    circle_check_specs,
+    circle_checks,
     code_version,
+    cylinder_check_specs,
+    cylinder_checks,
     data_version,
     png_metadata,
+    scan_check_thresholds,
     scan_partitions,
 )
 
@@ -36,6 +41,7 @@ def feature_assets(campaign: Campaign) -> list:
 
     parts = scan_partitions(campaign)
     params = campaign.params
+    limits = scan_check_thresholds(campaign)  # per-scan asset checks (assets/common.py)
 
     def key(stage: str):
         return asset_key(campaign, stage)
@@ -75,6 +81,7 @@ def feature_assets(campaign: Campaign) -> list:
         description="Circle models of every iteration's final state: projection plane through "
         "the sensor, linear least-squares circle (JP eqs. 1-4), robust refit, symmetry test, "
         "axis re-estimation (thesis 4.6.2-4.6.3; spec 3).",
+        check_specs=circle_check_specs(key("circle_models")),
     )
     def circle_models(context, range_images, segments):
         image = _image(range_images)
@@ -98,7 +105,8 @@ def feature_assets(campaign: Campaign) -> list:
             )
         else:
             meta.update(valid_circles=0, rejected_circles=0, rejected_share=0.0)
-        return Output(table, metadata=meta, data_version=data_version(table))
+        yield Output(table, metadata=meta, data_version=data_version(table))
+        yield from circle_checks(table, limits)
 
     @asset(
         key=key("cylinder_segments"),
@@ -108,6 +116,7 @@ def feature_assets(campaign: Campaign) -> list:
         code_version=code_version(campaign, "cylinder_segments"),
         description="Cylinder (truncated-cone) segments chained from valid circles, broken at "
         "the curvature threshold and gaps, filtered by length (thesis 4.6.3; spec 4).",
+        check_specs=cylinder_check_specs(key("cylinder_segments")),
     )
     def cylinder_segments(context, circle_models):
         final = circle_models[circle_models["iteration"] == circle_models["iteration"].max()] if len(circle_models) else circle_models
@@ -117,7 +126,8 @@ def feature_assets(campaign: Campaign) -> list:
             "total_length_m": round(float(table["length_m"].sum()), 2) if len(table) else 0.0,
             "median_radius_m": round(float(table["radius_m"].median()), 4) if len(table) else 0.0,
         }
-        return Output(table, metadata=meta, data_version=data_version(table))
+        yield Output(table, metadata=meta, data_version=data_version(table))
+        yield from cylinder_checks(table, limits)
 
     @asset(
         key=key("line_segments"),

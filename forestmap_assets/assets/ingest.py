@@ -29,7 +29,10 @@ def read_campaign_scan(campaign: Campaign, scan_id: str) -> RangeImage:
     """Read one scan of the campaign as a levelled organised range image."""
     from ..io.readers import read_scan
 
-    entry = campaign.scan(scan_id)
+    try:
+        entry = campaign.scan(scan_id)
+    except KeyError:
+        raise ValueError(f"scan {scan_id!r} is not listed in {campaign.root / 'campaign.yaml'}") from None
     return read_scan(entry.path, angular_step_deg=campaign.angular_step_deg, tilt_deg=entry.tilt_deg)
 
 

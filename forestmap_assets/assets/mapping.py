@@ -80,7 +80,7 @@ def mapping_assets(campaign: Campaign) -> list:
     def candidate_pairs(context, submaps):
         submaps = submaps or {}
         reg = params.registration
-        pairs = [(p.scan, p.reference, p.a_priori) for p in campaign.pairs] or None
+        pairs = [(p.scan, p.reference, p.a_priori, p.search) for p in campaign.pairs] or None
         priors = {s.id: s.a_priori for s in campaign.scans if s.a_priori is not None}
         a_priori = priors if len(priors) == len(campaign.scans) and not pairs else None
         reach = {sid: submap_reach(df) for sid, df in submaps.items()}
@@ -130,16 +130,26 @@ def mapping_assets(campaign: Campaign) -> list:
         code_version=code_version(campaign, "optimal_map"),
         description="Global poses and covariances: links admitted one at a time (most confident "
         "first, spanning tree then loop closures tested by the residual rule), Lu-Milios "
-        "minimum-variance estimate (thesis 3.2.2, 6.4, 7.1; spec 8).",
+        "minimum-variance estimate (thesis 3.2.2, 6.4, 7.1; spec 8); with mapping.method "
+        "'chain', the thesis's incremental chaining with summed variances (6.2; spec 8.3).",
     )
     def optimal_map(context, pairwise_registrations):
         regs = pairwise_registrations["registrations"]
         accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
         mp = params.mapping
-        if accepted.empty:
-            poses = poses_table(campaign, None)
+        if accepted.empty:  # only the reference scan is placed: it defines the frame
+            ref_pose = pd.DataFrame([{c: 0.0 for c in POSE_COLUMNS[1:-1]}]).assign(scan=reference, registered=True)
+            poses = poses_table(campaign, ref_pose)
             links = accepted.assign(status=pd.Series(dtype=object), role=pd.Series(dtype=object), step=pd.Series(dtype=int))
             residuals = pd.DataFrame(columns=["scan", "reference", "ex", "ey", "ez", "eheading_deg", "rx", "ry", "rz", "rheading", "verdict"])
+        elif mp.method == "chain":  # the thesis's parking lot / corridor maps (spec 8.3)
+            from ..core.chained_map import chained_map
+
+            chained = chained_map(accepted, campaign.scan_ids, link_choice=mp.chain_link_choice,
+                                  covariance=mp.covariance, residual_sigmas=mp.residual_sigmas,
+                                  z_residual_sigmas=mp.z_residual_sigmas)
+            poses = poses_table(campaign, chained.poses)
+            links, residuals = chained.links, chained.residuals
         else:
             sel = select_links(accepted, reference, scans=campaign.scan_ids, confidence="confidence",
                                covariance=mp.covariance, iterate=mp.iterate,
@@ -165,7 +175,7 @@ def mapping_assets(campaign: Campaign) -> list:
         description="Residuals of eq. (11) of every admitted observation, normalised by its "
         "sigma, with verdicts ok / inconsistent (thesis 6.4, 7.1; spec 8.5).",
         check_specs=[
-            AssetCheckSpec("admitted_links_consistent", asset=key("residual_checks"),
+            AssetCheckSpec("admitted_links_consistent", asset=key("residual_checks"), blocking=True,
                            description="Every admitted observation passes the residual test (3 sigma x/y/heading, 8 sigma z)."),
             AssetCheckSpec("every_scan_registered", asset=key("residual_checks"),
                            description="Every scan is placed by an admitted link, or explicitly reported as not registered."),
@@ -195,6 +205,7 @@ def mapping_assets(campaign: Campaign) -> list:
             "cylinder_segments": _all_scans(key("cylinder_segments")),
             "elevation_maps": _all_scans(key("elevation_maps")),
         },
+        deps=[key("residual_checks")],  # built only from a map that passed the residual test
         group_name="map",
         code_version=code_version(campaign, "integrated_map"),
         description="All cylinder segments in the global frame and the merged lowest-hit "

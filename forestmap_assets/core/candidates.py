@@ -21,13 +21,14 @@ from .geometry import relative_pose
 
 CANDIDATE_COLUMNS = (
     "scan", "reference", "cx", "cy", "cz", "cheading_deg", "hx", "hy", "hz", "hheading_deg",
-    "source",
+    "source", "box_heading_deg",
 )
 
 
 def _table(rows: list[dict]) -> pd.DataFrame:
     df = pd.DataFrame(rows, columns=list(CANDIDATE_COLUMNS))
-    for c in CANDIDATE_COLUMNS[2:-1]:
+    df["box_heading_deg"] = df["box_heading_deg"].fillna(0.0)
+    for c in (*CANDIDATE_COLUMNS[2:10], "box_heading_deg"):
         df[c] = df[c].astype(float)
     df["scan"] = df["scan"].astype(object)
     df["reference"] = df["reference"].astype(object)
@@ -50,6 +51,9 @@ def candidate_pairs(
     half-widths ``hx, hy, hz, hheading_deg`` (the location of ``scan`` in the levelled frame of
     ``reference``, spec 6.1) and ``source`` ('pairs' | 'a_priori' | 'no_prior').
 
+    ``pairs`` rows are (scan, reference, a_priori[, search]) with an optional per-pair box
+    override (:func:`~.pair_checks.search_box`: e.g. narrow across a corridor; the box's axes
+    are turned by ``box_heading_deg``, 0 unless ``along_deg`` is given).
     ``search`` = (xy_m, z_m, heading_deg) half-widths; ``reach`` = {scan id: largest horizontal
     distance of its sub-map points from its origin}. ``k_nearest``, ``max_distance_m`` and
     ``max_xy_m`` are (inferred) parameters.
@@ -58,11 +62,15 @@ def candidate_pairs(
     xy_m, z_m, heading_deg = (float(v) for v in search)
     rows: list[dict] = []
     if pairs:
-        for scan, ref, prior in pairs:
+        from .pair_checks import search_box
+
+        for scan, ref, prior, *box in pairs:
             dx, dy, dz, dh = (float(v) for v in prior)
+            hx, hy, hz, hh, axes = search_box((xy_m, z_m, heading_deg),
+                                              dict(box[0]) if box and box[0] else None)
             rows.append(dict(scan=str(scan), reference=str(ref), cx=dx, cy=dy, cz=dz,
-                             cheading_deg=dh, hx=xy_m, hy=xy_m, hz=z_m, hheading_deg=heading_deg,
-                             source="pairs"))
+                             cheading_deg=dh, hx=hx, hy=hy, hz=hz, hheading_deg=hh,
+                             source="pairs", box_heading_deg=axes))
         return _table(rows)
     if a_priori:
         known = [s for s in ids if s in {str(k) for k in a_priori}]

@@ -104,27 +104,32 @@ def pca_normals(
 
 
 def radius_normals(points: np.ndarray, radius_m: float, origin=(0.0, 0.0, 0.0), at=None,
-                   tree: cKDTree | None = None) -> np.ndarray:
+                   tree: cKDTree | None = None, chunk: int = 20_000) -> np.ndarray:
     """Unit PCA normals from **all** points within ``radius_m`` (spec 3.3 with a radius
     neighbourhood, inferred), evaluated at the points ``at`` (default: every point), oriented
     toward ``origin``. Unlike a k-nearest neighbourhood, duplicated points do not change the
-    estimate, which is what the merged-cloud quality score of spec 5.7 needs."""
+    estimate, which is what the merged-cloud quality score of spec 5.7 needs. Evaluated in
+    chunks of ``chunk`` query points (bounded memory)."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     q = p if at is None else np.asarray(at, dtype=np.float64).reshape(-1, 3)
     tree = tree or cKDTree(p)
-    lists = tree.query_ball_point(q, r=radius_m)
-    counts = np.array([len(v) for v in lists])
-    owner = np.repeat(np.arange(len(q)), counts)
-    idx = np.concatenate([np.asarray(v, dtype=np.int64) for v in lists]) if len(q) else np.zeros(0, int)
-    c = p[idx] - q[owner]  # relative coordinates (numerically stable)
-    n = np.maximum(counts, 1)[:, None]
-    s1 = np.stack([np.bincount(owner, weights=c[:, i], minlength=len(q)) for i in range(3)], 1) / n
-    s2 = np.stack([np.bincount(owner, weights=c[:, i] * c[:, j], minlength=len(q))
-                   for i in range(3) for j in range(3)], 1).reshape(-1, 3, 3) / n[:, :, None]
-    cov = s2 - s1[:, :, None] * s1[:, None, :]
-    _, evecs = np.linalg.eigh(cov)
-    normal = evecs[:, :, 0]
-    flip = ((np.asarray(origin, dtype=np.float64) - q) * normal).sum(axis=1) < 0
-    normal[flip] *= -1.0
-    normal[counts < 3] = np.nan
-    return normal
+    out = np.full((len(q), 3), np.nan)
+    for a in range(0, len(q), chunk):
+        qc = q[a:a + chunk]
+        lists = tree.query_ball_point(qc, r=radius_m)
+        counts = np.array([len(v) for v in lists])
+        owner = np.repeat(np.arange(len(qc)), counts)
+        idx = np.concatenate([np.asarray(v, dtype=np.int64) for v in lists])
+        c = p[idx] - qc[owner]  # relative coordinates (numerically stable)
+        n = np.maximum(counts, 1)[:, None]
+        s1 = np.stack([np.bincount(owner, weights=c[:, i], minlength=len(qc)) for i in range(3)], 1) / n
+        s2 = np.stack([np.bincount(owner, weights=c[:, i] * c[:, j], minlength=len(qc))
+                       for i in range(3) for j in range(3)], 1).reshape(-1, 3, 3) / n[:, :, None]
+        cov = s2 - s1[:, :, None] * s1[:, None, :]
+        _, evecs = np.linalg.eigh(cov)
+        normal = evecs[:, :, 0]
+        flip = ((np.asarray(origin, dtype=np.float64) - qc) * normal).sum(axis=1) < 0
+        normal[flip] *= -1.0
+        normal[counts < 3] = np.nan
+        out[a:a + chunk] = normal
+    return out

@@ -38,6 +38,7 @@ REGISTRATION_COLUMNS = [
 EXTRA_COLUMNS = [
     "matched_points", "matched_stems", "peak_mass_share", "n_hypotheses", "best_rival_gap", "cloud_cells", "confidence",
     "dz_features", "sd_z_features", "z_source",
+    "support_m", "weak_direction_deg", "rival_ratio", "rival_separation_m", "rival_dx", "rival_dy",
 ]
 
 
@@ -103,13 +104,15 @@ def observation_sigmas(result, sigma_scale: float = 1.0) -> np.ndarray:
 
 
 def _register_one(args):
-    from .registration import register_pair
+    from .pair_checks import register_in_box
 
-    scan_pts, ref_pts, centre, half, params = args
+    scan_pts, ref_pts, centre, half, params, box_heading = args
     t0 = time.perf_counter()
-    result = register_pair(scan_pts, ref_pts, centre, half, params, method=params.method, weight=params.weight,
-                           s_floor=params.s_floor, adjacency=params.adjacency,
-                           hypothesis_separation_m=params.hypothesis_separation_m, max_cells=params.max_cells)
+    result = register_in_box(scan_pts, ref_pts, centre, half, params, box_heading_deg=box_heading,
+                             method=params.method, weight=params.weight,
+                             s_floor=params.s_floor, adjacency=params.adjacency,
+                             hypothesis_separation_m=params.hypothesis_separation_m,
+                             max_cells=params.max_cells)
     result.seconds = time.perf_counter() - t0
     return result
 
@@ -139,7 +142,8 @@ def register_candidates(
         scan = submaps.get(c.scan)
         ref = submaps.get(c.reference)
         pts = lambda df: np.zeros((0, 3)) if df is None or df.empty else df[["x", "y", "z"]].to_numpy(float)  # noqa: E731
-        jobs.append((pts(scan), pts(ref), (c.cx, c.cy, c.cz, c.cheading_deg), (c.hx, c.hy, c.hz, c.hheading_deg), params))
+        jobs.append((pts(scan), pts(ref), (c.cx, c.cy, c.cz, c.cheading_deg), (c.hx, c.hy, c.hz, c.hheading_deg), params,
+                     float(getattr(c, "box_heading_deg", 0.0) or 0.0)))
     workers = workers or min(len(jobs), os.cpu_count() or 1)
     results = []
     if workers > 1 and len(jobs) > 1:
@@ -155,10 +159,21 @@ def register_candidates(
             if progress:
                 progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {results[-1].seconds:.1f} s")
 
+    from .pair_checks import assess_pair, judge_in_box
+
     rows, levels, hyps = [], [], []
     for c, job, res in zip(candidates.itertuples(index=False), jobs, results, strict=True):
-        status, reason, extra = judge(res, params, job[2], job[3], min_matched_points=min_matched_points,
-                                      ambiguity_margin=ambiguity_margin)
+        status, reason, extra = judge_in_box(res, params, job[2], job[3], job[5], min_matched_points=min_matched_points,
+                                             ambiguity_margin=ambiguity_margin)
+        if status == "accepted" and (params.min_support_m > 0 or params.max_rival_ratio is not None):
+            why, figures = assess_pair(
+                submaps[c.scan], submaps[c.reference], res.peak, job[2], job[3], params,
+                box_heading_deg=job[5], min_support_m=params.min_support_m,
+                max_rival_ratio=np.inf if params.max_rival_ratio is None else params.max_rival_ratio,
+                exclusion_m=params.rival_exclusion_m, match_m=max(3 * params.sigma_m, params.final_cell_m))
+            extra.update(figures)
+            if why:
+                status, reason = "rejected", why
         sd = observation_sigmas(res, sigma_scale) if res.status == "ok" else np.full(4, np.nan)
         centre = np.asarray(res.centre, dtype=float).copy()
         extra.update(dz_features=centre[2], sd_z_features=sd[2], z_source="features")

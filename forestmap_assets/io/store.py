@@ -145,6 +145,19 @@ class ParquetIOManager(UPathIOManager):
     def path_exists(self, path: UPath) -> bool:
         return self._table_path(path).exists() or self._bundle_path(path).exists()
 
+    def load_partitions(self, context: InputContext):
+        """Per-scan partitions read by a campaign-level asset are always ``{scan: output}``,
+        also for a campaign of one scan (Dagster's default hands one partition over bare)."""
+        if context.has_partition_key:  # per-scan asset reading its own scan's partition
+            return super().load_partitions(context)
+        paths = self._get_paths_for_partitions(context)
+        out = {}
+        for key in context.asset_partition_keys:
+            obj = self._load_partition_from_path(context, key, paths[key])
+            if obj is not None:
+                out[key] = obj
+        return out
+
 
 class ParquetStore(ConfigurableIOManagerFactory):
     """The forestmap asset store; ``base_url`` is a local folder or any fsspec URL."""

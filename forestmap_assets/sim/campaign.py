@@ -15,6 +15,19 @@ T, S, R, Q, O, N, tripod levelled, operator a priori alignments for neighbouring
 
 A relative pose (dx, dy, dz, dheading) of pair (scan, reference) is the location of ``scan`` in
 the levelled frame of ``reference``: ``p_ref = R_z(dheading) p_scan + d`` (spec 6.1).
+
+``site="corridor"`` / ``"parking-lot"`` simulate the thesis's structured sites instead (spec 10.1,
+:mod:`.sites`): scans 1, 2, 3, ... (corridor, ``environment: indoor``) or E, F, G, ... (parking
+lot, ``environment: outdoor``) from a cart at about 1.3 m, consecutive along the corridor / the
+lot's lane, consecutive pairs a priori (plus the loop-closing pair on a ring corridor), and the
+extra truth::
+
+    OUT/truth/pillars.csv        pillar_id,kind,x,y,z,radius_m,height_m,n_visible_scans
+    OUT/truth/wall_lines.csv     line_id,x0,y0,z0,x1,y1,z1,wall_id,face  (top edge of every wall
+                                 face: the wall/ceiling or wall-top corner lines)
+    OUT/truth/visible_lines.csv  scan,line_id,x,y,z  corner-line samples every 0.1 m that the
+                                 scan sees (ray cast), in that scan's levelled frame
+    OUT/truth/labels/<id>.npz    also ``part`` (mesh object id per pixel)
 """
 
 from __future__ import annotations
@@ -29,19 +42,46 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .forest import KIND_STEM, Forest, breast_height_table, make_forest, stems_in_frame
+from .forest import (
+    KIND_STEM,
+    STEM_COLUMNS,
+    Forest,
+    breast_height_table,
+    make_forest,
+    stems_in_frame,
+)
 from .scanner import RESOLUTION_DIVISOR, ScanPose, ScanResult, VirtualScanner, rot_z
+from .sites import (
+    PILLAR_COLUMNS,
+    SITE_ENVIRONMENT,
+    SITES,
+    Site,
+    lines_in_frame,
+    make_site,
+    points_in_frame,
+    visible_line_samples,
+    visible_parts,
+)
 
 THESIS_IDS = "TSRQON"  # spec 10.1
 _ID_ORDER = THESIS_IDS + "MLKJIHGFEDCBAPUVWXYZ"
+_LOT_ORDER = "EFGHIJKLMNOPQRSTUVWXYZABCD"  # parking lot E, F, G, H, I, J (spec 10.1)
+PILLAR_TRUTH_COLUMNS = PILLAR_COLUMNS + ["n_visible_scans"]
+# Thesis search boxes (spec 6.6) used as the minimum box of a simulated campaign.
+_MIN_SEARCH = {"forest": (5.0, 1.25, 60.0), "indoor": (5.0, 0.625, 30.0),
+               "outdoor": (10.0, 1.25, 100.0)}
 FORMATS = {"npz": ".npz", "las": ".las", "ply": ".ply", "e57": ".e57"}
 POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg"]
 TREE_COLUMNS = ["tree_id", "x", "y", "z", "dbh_m", "n_visible_scans"]
 
 
-def scan_ids(n: int) -> list[str]:
-    """T, S, R, Q, O, N (spec 10.1), then the other letters, then letters with a number."""
-    return [_ID_ORDER[i % 26] + (str(i // 26 + 1) if i >= 26 else "") for i in range(n)]
+def scan_ids(n: int, site: str = "forest") -> list[str]:
+    """Scan names of the thesis's sites (spec 10.1): forest T, S, R, Q, O, N, then the other
+    letters, then letters with a number; corridor 1, 2, 3, ...; parking lot E, F, G, ..."""
+    if site == "corridor":
+        return [str(i + 1) for i in range(n)]
+    order = _LOT_ORDER if site == "parking-lot" else _ID_ORDER
+    return [order[i % 26] + (str(i // 26 + 1) if i >= 26 else "") for i in range(n)]
 
 
 def wrap_deg(a):
@@ -144,6 +184,39 @@ def _r(x, nd: int = 6) -> float:
     return float(round(float(x), nd))
 
 
+def cart_tilt(ground, xy: np.ndarray, heading_deg: np.ndarray, eps_m: float = 0.25) -> np.ndarray:
+    """(roll, pitch) (n, 2) deg of a cart standing on ``ground`` at ``xy`` facing ``heading_deg``:
+    the scanner's z axis is the ground normal (``p_world = R_z(h) R_y(pitch) R_x(roll) p_s``,
+    :class:`~.scanner.ScanPose`; the normal is the gradient over +-``eps_m``, inferred)."""
+    x, y = xy[:, 0], xy[:, 1]
+    gx = (ground.height(x + eps_m, y) - ground.height(x - eps_m, y)) / (2 * eps_m)
+    gy = (ground.height(x, y + eps_m) - ground.height(x, y - eps_m)) / (2 * eps_m)
+    up = np.column_stack([-gx, -gy, np.ones_like(gx)])
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    h = np.radians(heading_deg)
+    ux = np.cos(h) * up[:, 0] + np.sin(h) * up[:, 1]  # normal in the levelled cart frame
+    uy = -np.sin(h) * up[:, 0] + np.cos(h) * up[:, 1]
+    roll = np.degrees(np.arcsin(np.clip(-uy, -1, 1)))
+    pitch = np.degrees(np.arctan2(ux, up[:, 2]))
+    return np.column_stack([roll, pitch])
+
+
+def site_pairs(xy: np.ndarray, closed: bool, close_factor: float = 1.6,
+               span: int = 1) -> list[tuple[int, int]]:
+    """(scan, reference) index pairs of a cart survey: consecutive scans (thesis FE ... JI,
+    21 ... 87, spec 10.1; ``span`` > 1 adds scans up to ``span`` stops apart, inferred) and, on a
+    closed ring whose last scan is at most ``close_factor`` times the median consecutive
+    distance from the first, the pairs across the start of the ring (the loop, inferred)."""
+    n = len(xy)
+    pairs = [(i, i - k) for k in range(1, span + 1) for i in range(k, n)]
+    if closed and n > 2:
+        step = np.median(np.linalg.norm(np.diff(xy, axis=0), axis=1))
+        if np.linalg.norm(xy[-1] - xy[0]) <= close_factor * step:
+            pairs += [(n - 1 - a, b) for a in range(span) for b in range(span - a)
+                      if n - 1 - a > b + span]
+    return sorted(pairs, key=lambda p: (p[0], -p[1]))
+
+
 def simulate_campaign(
     out,
     *,
@@ -157,26 +230,40 @@ def simulate_campaign(
     fmt: str = "npz",
     tilt_deg: Sequence[float] | Sequence[Sequence[float]] | None = None,
     progress: Callable[[str], None] | None = None,
-    scanner_height_m: float = 1.5,
+    scanner_height_m: float | None = None,
     neighbour_distance_m: float = 11.0,
     visible_range_m: float = 20.0,
     visible_length_m: float = 1.0,
     write_labels: bool = True,
     forest_kwargs: dict | None = None,
     scanner_kwargs: dict | None = None,
+    site: str = "forest",
+    site_kwargs: dict | None = None,
+    follow_ground_tilt: bool = True,
+    tilt_noise_deg: float = 0.0,
+    pair_span: int = 1,
 ) -> Path:
     """Simulate a campaign into folder ``out`` and return its path (DESIGN.md 3, ``simulate``).
 
-    ``tilt_deg`` (roll, pitch), or one pair per scan, tilts the scanners: scans are then stored
-    in the tilted scanner frame and the tilt is written to ``campaign.yaml``. ``prior_error``
-    (metres, degrees) bounds the a priori error of neighbouring pairs; ``no_prior`` writes no
-    pairs and no search box. Scanner heights are ``scanner_height_m`` + U(-0.1, 0.1) m above
-    the ground, headings U(-180, 180) deg. Deterministic for a given ``seed``.
+    ``site`` is ``forest`` (tripod, scanner ``scanner_height_m`` = 1.5 +- 0.1 m above the ground,
+    headings U(-180, 180) deg, neighbouring pairs), ``corridor`` or ``parking-lot`` (spec 10.1,
+    :mod:`.sites` with ``site_kwargs``; ``plot_size`` is the ring / corridor / lot size and
+    ``trees`` the parking lot's trees: a cart at ``scanner_height_m`` = 1.3 +- 0.01 m heading
+    along its path, consecutive pairs, ``environment`` indoor / outdoor). ``tilt_deg`` (roll,
+    pitch), or one pair per scan, tilts the scanners: scans are then stored in the tilted
+    scanner frame and the tilt is written to ``campaign.yaml``; without it a cart on sloping
+    ground (parking lot) tilts with the ground when ``follow_ground_tilt``. ``tilt_noise_deg``
+    adds N(0, sigma) to the tilt written to ``campaign.yaml`` (a tilt-sensor error; the thesis's
+    wall-line z spread, spec 10.4). ``prior_error`` (metres, degrees) bounds the a priori error
+    of the pairs; ``no_prior`` writes no pairs and no search box; ``pair_span`` > 1 also pairs
+    cart stops up to that many apart (the thesis: 1). Deterministic for ``seed``.
     """
     if fmt not in FORMATS:
         raise ValueError(f"format: {fmt!r} is not one of {list(FORMATS)}")
     if resolution not in RESOLUTION_DIVISOR:
         raise ValueError(f"resolution: {resolution!r} is not one of {list(RESOLUTION_DIVISOR)}")
+    if site not in SITES:
+        raise ValueError(f"site: {site!r} is not one of {list(SITES)}")
     if scans < 1:
         raise ValueError("scans: need at least one scan")
     say = progress or (lambda _msg: None)
@@ -187,41 +274,78 @@ def simulate_campaign(
         (out / "truth" / "labels").mkdir(exist_ok=True)
     ss_forest, ss_pose, ss_scan, ss_prior = np.random.SeedSequence(seed).spawn(4)
     t0 = time.perf_counter()
-
-    forest = make_forest(trees, plot_size, n_scans=scans, seed=np.random.default_rng(ss_forest),
-                         **(forest_kwargs or {}))
-    say(f"forest: {trees} trees in a {plot_size:g} m plot, {forest.mesh.n_triangles} triangles")
     rng = np.random.default_rng(ss_pose)
-    ids = scan_ids(scans)
+    ids = scan_ids(scans, site)
     tilts = _tilts(tilt_deg, scans)
-    headings = wrap_deg(rng.uniform(-180.0, 180.0, scans))
-    heights = scanner_height_m + rng.uniform(-0.1, 0.1, scans)
-    xy = forest.scan_xy
-    ground_z = forest.ground.height(xy[:, 0], xy[:, 1])
+    world: Forest | Site
+    if site == "forest":
+        world = make_forest(trees, plot_size, n_scans=scans,
+                            seed=np.random.default_rng(ss_forest), **(forest_kwargs or {}))
+        say(f"forest: {trees} trees in a {plot_size:g} m plot, {world.mesh.n_triangles} "
+            f"triangles")
+        environment = "forest"
+        headings = wrap_deg(rng.uniform(-180.0, 180.0, scans))
+        heights = (1.5 if scanner_height_m is None else scanner_height_m) + rng.uniform(
+            -0.1, 0.1, scans)
+    else:
+        world = make_site(site, scans, plot_size, seed=np.random.default_rng(ss_forest),
+                          trees=trees, **(site_kwargs or {}))
+        environment = SITE_ENVIRONMENT[site]
+        say(f"{site}: {plot_size:g} m, {len(world.pillars)} pillars/poles, {len(world.walls)} "
+            f"walls, {len(world.stems)} trees, {world.mesh.n_triangles} triangles")
+        headings = wrap_deg(world.scan_heading_deg)
+        heights = (1.3 if scanner_height_m is None else scanner_height_m) + rng.uniform(
+            -0.01, 0.01, scans)
+        if tilts is None and follow_ground_tilt:
+            tilts = cart_tilt(world.ground, world.scan_xy, headings)
+            if np.abs(tilts).max() < 1e-9:
+                tilts = None
+    measured = None
+    if tilts is not None:
+        measured = tilts + (rng.normal(0.0, tilt_noise_deg, tilts.shape) if tilt_noise_deg
+                            else 0.0)
+    xy = world.scan_xy
+    ground_z = world.ground.height(xy[:, 0], xy[:, 1])
     poses = [
         ScanPose(float(xy[i, 0]), float(xy[i, 1]), float(ground_z[i] + heights[i]),
                  float(headings[i]), (0.0, 0.0) if tilts is None else tuple(map(float, tilts[i])))
         for i in range(scans)
     ]
 
-    scanner = VirtualScanner(forest, resolution=resolution, **(scanner_kwargs or {}))
+    scanner = VirtualScanner(world, resolution=resolution, **(scanner_kwargs or {}))
     ext = FORMATS[fmt]
-    n_visible = np.zeros(trees + 1, dtype=np.int64)
+    max_tree = int(world.stems["tree_id"].max()) if len(world.stems) else 0
+    n_visible = np.zeros(max_tree + 1, dtype=np.int64)
+    pillars = getattr(world, "pillars", None)
+    pillar_parts = getattr(world, "pillar_parts", np.zeros(0, np.int64))
+    n_pillar_visible = np.zeros(len(pillar_parts), dtype=np.int64)
+    visible_lines = []
     entries = []
     for i, (sid, pose, ss) in enumerate(zip(ids, poses, ss_scan.spawn(scans), strict=True)):
         ts = time.perf_counter()
         result = scanner.scan(pose, np.random.default_rng(ss))
-        vis = visible_trees(result, forest, max_range_m=visible_range_m,
-                            min_length_m=visible_length_m)
+        vis = visible_trees(result, world, max_range_m=visible_range_m,
+                            min_length_m=visible_length_m) if max_tree else np.zeros(0, int)
         n_visible[vis] += 1
+        if len(pillar_parts):
+            z = result.world_points(noisy=False)[..., 2]
+            near = result.true_range_m <= visible_range_m
+            n_pillar_visible += visible_parts(np.where(near, result.part, -1), z, pillar_parts,
+                                              min_extent_m=visible_length_m)
+        if site != "forest":
+            vis_l = visible_line_samples(world.mesh, world.wall_lines, pose.origin)
+            visible_lines.append(points_in_frame(vis_l, pose.origin, pose.heading_deg)
+                                 .assign(scan=sid))
         write_scan_file(out / "scans" / f"{sid}{ext}", result, fmt)
         if write_labels:
-            save_npz(out / "truth" / "labels" / f"{sid}.npz",
-                     {"kind": result.kind, "tree_id": result.tree_id.astype(np.int16),
-                      "mixed": result.mixed})
+            labels = {"kind": result.kind, "tree_id": result.tree_id.astype(np.int16),
+                      "mixed": result.mixed}
+            if site != "forest":
+                labels["part"] = result.part.astype(np.int32)
+            save_npz(out / "truth" / "labels" / f"{sid}.npz", labels)
         entry = {"id": sid, "path": f"scans/{sid}{ext}"}
-        if tilts is not None:
-            entry["tilt_deg"] = [_r(tilts[i, 0]), _r(tilts[i, 1])]
+        if measured is not None:
+            entry["tilt_deg"] = [_r(measured[i, 0]), _r(measured[i, 1])]
         entries.append(entry)
         say(f"scan {sid} ({i + 1}/{scans}): {result.image.shape[0]}x{result.image.shape[1]}, "
             f"{result.n_rays} rays, {int(vis.size)} stems visible, "
@@ -233,30 +357,44 @@ def simulate_campaign(
     pd.DataFrame({"scan": ids, "x": rel[:, 0], "y": rel[:, 1], "z": rel[:, 2],
                   "heading_deg": rel[:, 3]})[POSE_COLUMNS].to_csv(
         out / "truth" / "poses.csv", index=False, float_format="%.6f")
-    stems_g = stems_in_frame(forest.stems, ref.origin, ref.heading_deg)
+    stems = world.stems if len(world.stems) else pd.DataFrame(columns=STEM_COLUMNS)
+    stems_g = stems_in_frame(stems.astype(float).astype({"tree_id": int}), ref.origin,
+                             ref.heading_deg)
     tree_tab = breast_height_table(stems_g)
-    tree_tab["n_visible_scans"] = n_visible[tree_tab["tree_id"].to_numpy()]
+    tree_tab["n_visible_scans"] = n_visible[tree_tab["tree_id"].to_numpy(dtype=int)]
     tree_tab[TREE_COLUMNS].to_csv(out / "truth" / "trees.csv", index=False, float_format="%.6f")
     stems_g.to_csv(out / "truth" / "stems.csv", index=False, float_format="%.6f")
+    if site != "forest":
+        pil = points_in_frame(pillars, ref.origin, ref.heading_deg)
+        pil["n_visible_scans"] = n_pillar_visible
+        pil[PILLAR_TRUTH_COLUMNS].to_csv(out / "truth" / "pillars.csv", index=False,
+                                         float_format="%.6f")
+        lines_in_frame(world.wall_lines, ref.origin, ref.heading_deg).to_csv(
+            out / "truth" / "wall_lines.csv", index=False, float_format="%.6f")
+        pd.concat(visible_lines, ignore_index=True)[["scan", "line_id", "x", "y", "z"]].to_csv(
+            out / "truth" / "visible_lines.csv", index=False, float_format="%.4f")
 
     # campaign.yaml
     doc: dict = {
         "name": out.resolve().name,
-        "environment": "forest",
+        "environment": environment,
         "sensor": {"angular_step_deg": [_r(scanner.d_az, 9), _r(scanner.d_el, 9)]},
         "scans": entries,
     }
     if not no_prior:
         prng = np.random.default_rng(ss_prior)
         pairs = []
-        for a, b in neighbour_pairs(xy, neighbour_distance_m):
+        index_pairs = (neighbour_pairs(xy, neighbour_distance_m) if site == "forest"
+                       else site_pairs(xy, world.closed_loop, span=pair_span))
+        for a, b in index_pairs:
             prior = perturb_prior(relative_pose(poses[a], poses[b]), prior_error, prng)
             pairs.append({"scan": ids[a], "reference": ids[b],
                           "a_priori": [_r(v, 4) for v in prior]})
         doc["pairs"] = pairs
         m, deg = prior_error
-        doc["search"] = {"xy_m": _r(max(5.0, 1.5 * m), 4), "z_m": _r(max(1.25, 1.5 * m), 4),
-                         "heading_deg": _r(min(180.0, max(60.0, 1.5 * deg)), 4)}
+        bxy, bz, bh = _MIN_SEARCH[environment]
+        doc["search"] = {"xy_m": _r(max(bxy, 1.5 * m), 4), "z_m": _r(max(bz, 1.5 * m), 4),
+                         "heading_deg": _r(min(180.0, max(bh, 1.5 * deg)), 4)}
     with open(out / "campaign.yaml", "w") as fh:
         yaml.safe_dump(doc, fh, sort_keys=False, default_flow_style=None)
     say(f"campaign written to {out} in {time.perf_counter() - t0:.1f} s")

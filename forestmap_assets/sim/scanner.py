@@ -33,6 +33,8 @@ RESOLUTION_DIVISOR = {"full": 1, "half": 2, "quarter": 4}
 _REFLECTANCE = np.zeros(256, dtype=np.float32)
 _REFLECTANCE[[KIND_GROUND, KIND_STEM, KIND_BRANCH, KIND_FOLIAGE, KIND_UNDERSTOREY]] = (
     0.30, 0.50, 0.45, 0.60, 0.40)
+# structured sites (sim/sites.py): wall, ceiling, pillar, pole, car, person
+_REFLECTANCE[5:11] = (0.55, 0.60, 0.50, 0.40, 0.35, 0.30)
 
 
 def rot_z(deg: float) -> np.ndarray:
@@ -98,7 +100,9 @@ class VirtualScanner:
     ``footprint_fraction`` (share of the nominal footprint radius at which a first return still
     triggers), ``mix_min_step_m`` (how much nearer a sub-ray return must be to replace the
     centre return) and the ``intensity`` channel (reflectance per kind x |cos incidence|; the
-    thesis uses range only). ``n_cols``/``n_rows`` are full-resolution counts.
+    thesis uses range only). ``n_cols``/``n_rows`` are full-resolution counts. ``colour`` (True,
+    or a :class:`~forestmap_assets.sim.colour.ColourModel`) adds 8-bit RGB per pixel from the
+    surface's world-fixed albedo under the scan's own light (men spec 2.3; ``sim/colour.py``).
     """
 
     def __init__(
@@ -121,6 +125,7 @@ class VirtualScanner:
         intensity: bool = True,
         chunk_rays: int = 1_000_000,
         mix_min_step_m: float = 0.05,
+        colour=False,
     ) -> None:
         if resolution not in RESOLUTION_DIVISOR:
             raise ValueError(f"resolution: {resolution!r} is not one of {list(RESOLUTION_DIVISOR)}")
@@ -143,6 +148,11 @@ class VirtualScanner:
         self.chunk_rays = chunk_rays
         self.mix_min_step_m = mix_min_step_m
         self._dirs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        if colour is True:
+            from .colour import ColourModel
+
+            colour = ColourModel()
+        self.colour = colour or None
 
     # ---- geometry ------------------------------------------------------------------------
     def footprint_radius_m(self, r: np.ndarray) -> np.ndarray:
@@ -258,13 +268,21 @@ class VirtualScanner:
         kind = np.where(valid, self.mesh.kind[pi], NO_RETURN).astype(np.uint8)
         tree = np.where(valid, self.mesh.tree[pi], -1).astype(np.int32)
         part = np.where(valid, self.mesh.part[pi], -1).astype(np.int32)
-        intensity = None
-        if self.intensity:
+        intensity = rgb = None
+        if self.intensity or self.colour is not None:
             cos_i = np.abs((self.mesh.normals[pi] * d).sum(axis=1))
+        if self.intensity:
             intensity = np.where(valid, _REFLECTANCE[kind] * cos_i, np.nan).astype(np.float32)
             intensity = np.round(intensity, 3).reshape(shape)  # 1e-3 steps (compresses well)
+        if self.colour is not None:
+            # colour of the returning surface point (a mixed pixel takes the nearer surface's)
+            hit = np.flatnonzero(valid)
+            world = origin + best_r[hit, None].astype(np.float64) * d[hit]
+            rgb = np.zeros((t.size, 3), dtype=np.uint8)
+            rgb[hit] = self.colour.render(world, kind[hit], part[hit], cos_i[hit], rng)
+            rgb = rgb.reshape(shape + (3,))
         image = RangeImage(noisy.reshape(shape), self.azimuth_deg, self.elevation_deg,
-                           (float(pose.tilt_deg[0]), float(pose.tilt_deg[1])), intensity)
+                           (float(pose.tilt_deg[0]), float(pose.tilt_deg[1])), intensity, rgb)
         return ScanResult(image, pose, true_r.reshape(shape), kind.reshape(shape),
                           tree.reshape(shape), part.reshape(shape), mixed.reshape(shape),
                           int(n_rays))

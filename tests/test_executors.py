@@ -1,0 +1,57 @@
+"""The same code on Dagster's multiprocess executor and on a Dask cluster (dagster-dask) with the
+asset store on a shared fsspec URL (issue 6, DESIGN.md section 5)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from conftest import write_campaign
+from dagster import DagsterEventType
+
+from forestmap_assets.io.store import read_table
+from forestmap_assets.runner import get_instance, run_campaign
+
+
+def _events(instance, run_id, kind):
+    return [e for e in instance.all_logs(run_id) if e.dagster_event and e.dagster_event.event_type == kind]
+
+
+def test_multiprocess_runs_scans_side_by_side(tmp_path):
+    root = write_campaign(tmp_path / "plot", scans=("T", "S"))
+    lines: list[str] = []
+    summary = run_campaign(root, executor="multiprocess", workers=2, stages=["range_images"], progress=lines.append)
+    assert summary.failures == []
+    assert sorted(summary.ran) == [("range_images", "S"), ("range_images", "T")]
+    assert any("[T] range_images" in line for line in lines) and any("[S] range_images" in line for line in lines)
+    instance = get_instance()
+    records = [instance.get_run_record_by_id(r) for r in summary.run_ids]
+    assert len(records) == 2
+    for rec in records:
+        # Dagster's multiprocess executor ran the step in a child process of its own
+        (worker,) = _events(instance, rec.dagster_run.run_id, DagsterEventType.STEP_WORKER_STARTED)
+        (start,) = _events(instance, rec.dagster_run.run_id, DagsterEventType.STEP_START)
+        assert start.dagster_event.pid != os.getpid()
+    a, b = records
+    assert a.start_time < b.end_time and b.start_time < a.end_time  # the two scans overlapped
+
+
+def test_dask_cluster_with_store_on_an_fsspec_url(tmp_path, monkeypatch):
+    distributed = pytest.importorskip("dask.distributed")
+    pytest.importorskip("dagster_dask")
+    shared = tmp_path / "shared-store"
+    monkeypatch.setenv("FORESTMAP_STORE", f"file://{shared}")
+    root = write_campaign(tmp_path / "plot", scans=("T", "S"))
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        worker_pids = set(client.run(os.getpid).values())
+        summary = run_campaign(root, executor="dask", dask_address=cluster.scheduler_address,
+                               stages=["segments"], progress=lambda m: None)
+    assert summary.failures == []
+    assert sorted(summary.ran) == sorted((s, p) for s in ("range_images", "segments") for p in ("S", "T"))
+    instance = get_instance()
+    step_pids = {e.dagster_event.pid for r in summary.run_ids for e in _events(instance, r, DagsterEventType.STEP_START)}
+    assert step_pids and step_pids <= worker_pids  # every step ran on a Dask worker
+    for stage in ("range_images", "segments"):
+        for scan in ("S", "T"):
+            assert read_table(shared / "test_campaign" / stage / f"{scan}.parquet").num_rows > 0
