@@ -39,3 +39,42 @@ def test_fsspec_memory_url():
     path = UPath("memory://forestmap-test/t.parquet")
     store.write_table_atomic(pd.DataFrame({"a": [1, 2]}), path)
     assert store.read_table(path).num_rows == 2
+
+
+def test_concurrent_bundle_writers_and_a_reader(tmp_path):
+    """Two writers replacing one bundle folder while a reader reads it: every write succeeds,
+    every read sees a whole bundle, and one complete bundle is left with no temporary folder."""
+    import threading
+
+    path = UPath(tmp_path / "x.bundle")
+    store.write_bundle_atomic({"a": pd.DataFrame({"v": [0]})}, path)
+    errors, seen = [], []
+
+    def writer(w):
+        try:
+            for i in range(40):
+                store.write_bundle_atomic(
+                    {"a": pd.DataFrame({"v": [w * 1000 + i]}), "b": pd.DataFrame({"v": [w]})}, path)
+        except Exception as exc:  # pragma: no cover - the assertion below reports it
+            errors.append(exc)
+
+    def reader():
+        for _ in range(80):
+            for k in range(20):
+                try:
+                    seen.append(store.read_bundle(path))
+                    break
+                except (FileNotFoundError, OSError):
+                    continue  # between the two renames of a swap
+
+    threads = [threading.Thread(target=writer, args=(w,)) for w in (1, 2)]
+    threads.append(threading.Thread(target=reader))
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    final = store.read_bundle(path)
+    assert set(final) == {"a", "b"} and final["a"]["v"][0] // 1000 == final["b"]["v"][0]
+    assert all(set(b) in ({"a"}, {"a", "b"}) for b in seen)
+    assert [p.name for p in UPath(tmp_path).iterdir()] == ["x.bundle"]

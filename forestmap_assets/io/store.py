@@ -10,6 +10,7 @@ partial file behind.
 from __future__ import annotations
 
 import os
+import time
 import uuid
 from pathlib import Path
 from typing import Any
@@ -81,6 +82,28 @@ def _remove_tree(path: UPath) -> None:
         path.fs.rm(path.path, recursive=True)
 
 
+def _swap_in(tmp: UPath, path: UPath, attempts: int = 20) -> None:
+    """Move the finished folder ``tmp`` to ``path``, replacing an older one. A folder cannot be
+    renamed over another, so the old one is moved aside first; when a concurrent writer slips in
+    between, try again (the last writer wins, no reader ever sees a partial folder)."""
+    for k in range(attempts):
+        old = None
+        try:
+            if path.exists():
+                old = _tmp_sibling(path)
+                _move(path, old)
+            _move(tmp, path)
+        except (FileNotFoundError, FileExistsError, OSError):
+            if k == attempts - 1:
+                raise
+            time.sleep(0.01 * (k + 1))
+            continue
+        finally:
+            if old is not None and old.exists():
+                _remove_tree(old)
+        return
+
+
 def write_bundle_atomic(bundle: dict[str, Any], path: UPath) -> None:
     """Write a folder of Parquet tables; the folder appears complete or not at all."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -90,13 +113,7 @@ def write_bundle_atomic(bundle: dict[str, Any], path: UPath) -> None:
         for name, table in bundle.items():
             with (tmp / f"{name}.parquet").open("wb") as f:
                 pq.write_table(_as_arrow(table), f, compression="zstd")
-        if path.exists():
-            old = _tmp_sibling(path)
-            _move(path, old)
-            _move(tmp, path)
-            _remove_tree(old)
-        else:
-            _move(tmp, path)
+        _swap_in(tmp, path)
     except BaseException:
         if tmp.exists():
             _remove_tree(tmp)
@@ -138,8 +155,12 @@ class ParquetIOManager(UPathIOManager):
                 return table  # keep Arrow metadata (e.g. range images)
             return table.to_pandas()
         bundle_path = self._bundle_path(path)
-        if bundle_path.exists():
-            return read_bundle(bundle_path)
+        for k in range(5):  # a concurrent writer swaps a bundle folder in (see _swap_in)
+            if bundle_path.exists():
+                return read_bundle(bundle_path)
+            if not table_path.parent.exists():
+                break
+            time.sleep(0.02 * (k + 1))
         raise FileNotFoundError(f"no stored output at {table_path} (has the asset been materialised?)")
 
     def path_exists(self, path: UPath) -> bool:
