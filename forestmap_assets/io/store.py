@@ -9,6 +9,8 @@ partial file behind.
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import time
 import uuid
@@ -42,6 +44,9 @@ def _as_arrow(obj: pd.DataFrame | pa.Table) -> pa.Table:
     raise TypeError(f"expected a pandas DataFrame or pyarrow Table, got {type(obj).__name__}")
 
 
+MANIFEST = "_tables.json"  # bundle folder: its table names, written last
+
+
 def _tmp_sibling(path: UPath) -> UPath:
     return path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:12]}")
 
@@ -73,10 +78,18 @@ def read_table(path: str | os.PathLike | UPath) -> pa.Table:
         return pq.read_table(f)
 
 
+def _local(path: UPath) -> bool:
+    return path.protocol in ("", "file", "local")
+
+
 def _remove_tree(path: UPath) -> None:
-    if path.protocol in ("", "file", "local"):
+    if _local(path):
         import shutil
 
+        with contextlib.suppress(OSError):  # tables first, the manifest last (see read_bundle)
+            for name in os.listdir(path.path):
+                if name != MANIFEST:
+                    os.unlink(os.path.join(path.path, name))
         shutil.rmtree(path.path, ignore_errors=True)
     else:
         path.fs.rm(path.path, recursive=True)
@@ -113,6 +126,7 @@ def write_bundle_atomic(bundle: dict[str, Any], path: UPath) -> None:
         for name, table in bundle.items():
             with (tmp / f"{name}.parquet").open("wb") as f:
                 pq.write_table(_as_arrow(table), f, compression="zstd")
+        (tmp / MANIFEST).write_text(json.dumps(list(bundle)))
         _swap_in(tmp, path)
     except BaseException:
         if tmp.exists():
@@ -120,12 +134,45 @@ def write_bundle_atomic(bundle: dict[str, Any], path: UPath) -> None:
         raise
 
 
-def read_bundle(path: UPath) -> dict[str, pd.DataFrame]:
-    return {
-        p.name.removesuffix(".parquet"): read_table(p).to_pandas()
-        for p in sorted(path.iterdir())
-        if p.name.endswith(".parquet")
-    }
+def read_bundle(path: UPath, attempts: int = 20) -> dict[str, pd.DataFrame]:
+    """The tables of a bundle folder. Locally the folder is read through one open directory
+    handle, so a concurrent writer swapping a new folder in (:func:`_swap_in`) cannot mix two
+    versions; a folder being deleted under the reader is read again from its new self."""
+    path = UPath(path)
+    if not _local(path):
+        return {
+            p.name.removesuffix(".parquet"): read_table(p).to_pandas()
+            for p in sorted(path.iterdir())
+            if p.name.endswith(".parquet")
+        }
+    for k in range(attempts):
+        try:
+            return _read_bundle_dir(path.path)
+        except FileNotFoundError:
+            if k == attempts - 1:
+                raise
+            time.sleep(0.005 * (k + 1))
+    raise AssertionError("unreachable")
+
+
+def _read_bundle_dir(folder: str) -> dict[str, pd.DataFrame]:
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        names = sorted(n.removesuffix(".parquet") for n in os.listdir(fd) if n.endswith(".parquet"))
+        try:
+            with open(os.open(MANIFEST, os.O_RDONLY, dir_fd=fd)) as f:
+                expected = json.load(f)
+        except FileNotFoundError:
+            expected = None  # a bundle written before manifests, or one being deleted
+        if expected is None and not names:
+            raise FileNotFoundError(f"{folder}: empty bundle folder (being replaced?)")
+        out = {}
+        for name in expected if expected is not None else names:
+            with open(os.open(f"{name}.parquet", os.O_RDONLY, dir_fd=fd), "rb") as f:
+                out[name] = pq.read_table(f).to_pandas()
+        return out
+    finally:
+        os.close(fd)
 
 
 class ParquetIOManager(UPathIOManager):
