@@ -14,9 +14,11 @@ summed); the registrations table adds each pair's search time.
 from __future__ import annotations
 
 import base64
+import contextlib
 import html
 import json
 import os
+import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -411,6 +413,34 @@ def build_report(
         add("</details></div></div>")
     else:
         add('<p class="note">(no tree)</p>')
+
+    vantage = _load("next_vantage_points", campaign)
+    if vantage is not None and len(vantage.get("coverage", [])):
+        cov = vantage["coverage"].iloc[0]
+        props = vantage["proposals"]
+        add("<h2>Where to scan next</h2>")
+        add('<p class="note">Exploration grid of the plot (Men 2012 ch. 3, 6): cells mapped as '
+            "ground or obstacle relative to the local ground, frontier cells, and candidate "
+            "positions reachable on foot, ranked by the new area a 2-D visibility model with trunk "
+            "occlusion expects, keeping enough common stems to register, and by walking distance."
+            "</p><div class='cards'>")
+        add(_card(f"{100 * cov['coverage']:.1f} %", "of the plot mapped"))
+        add(_card(f"{cov['mapped_area_m2']:.0f} m²", "mapped area"))
+        add(_card(f"{cov['median_points_per_m2']:.0f}", "median points per m²"))
+        add(_card(int(props["feasible"].sum()) if len(props) else 0, "feasible positions"))
+        add("</div><div class='row'><div>")
+        with contextlib.suppress(Exception):  # the picture is a convenience, never a failure
+            from .assets.exploration import write_next_vantage_png
+
+            with tempfile.TemporaryDirectory() as tmp:
+                png = Path(tmp) / "next_vantage.png"
+                write_next_vantage_png(campaign, png)
+                add(_img(png.read_bytes(), "next vantage positions"))
+        add("</div><div>")
+        cols = ["rank", "x", "y", "expected_new_m2", "common_stems", "reference_scan", "path_m", "feasible"]
+        add(html_table(props[[c for c in cols if c in props]].head(10),
+                       {"x": 1, "y": 1, "expected_new_m2": 1, "path_m": 1}))
+        add("</div></div>")
 
     add("<h2>Timings</h2>")
     add(

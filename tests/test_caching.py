@@ -45,7 +45,8 @@ def test_parameter_change_reruns_that_stage_and_only_what_its_output_changes(tmp
     root = materialised_copy(tmp_path, monkeypatch)
     defs0 = build_definitions([campaign(root)])
     before = data_versions(defs0, root)
-    upstream = {"range_images", "segments", "circle_models", "line_segments", "elevation_maps"}
+    upstream = {"range_images", "segments", "circle_models", "line_segments", "elevation_maps",
+                "occlusion_boundaries"}
     downstream = set(ALL) - upstream - {"cylinder_segments"}
     edit_manifest(root, params={"cylinders": {"min_length_m": 3.0}})  # drops the shorter cylinders
     states = status_lines(root, capsys)

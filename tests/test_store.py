@@ -60,7 +60,7 @@ def test_concurrent_bundle_writers_and_a_reader(tmp_path):
 
     def reader():
         for _ in range(80):
-            for k in range(20):
+            for _attempt in range(20):
                 try:
                     seen.append(store.read_bundle(path))
                     break

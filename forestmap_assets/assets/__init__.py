@@ -21,6 +21,7 @@ from dagster import (
 
 from ..campaign import Campaign
 from .common import CAMPAIGN_STAGES, asset_key, job_name
+from .exploration import exploration_assets
 from .features import feature_assets
 from .ingest import ingest_assets
 from .mapping import mapping_assets
@@ -28,7 +29,7 @@ from .mapping import mapping_assets
 warnings.filterwarnings("ignore", category=BetaWarning)
 warnings.filterwarnings("ignore", category=PreviewWarning)
 
-STAGE_BUILDERS = [ingest_assets, feature_assets, mapping_assets]
+STAGE_BUILDERS = [ingest_assets, feature_assets, mapping_assets, exploration_assets]
 
 
 def follows_its_inputs(per_scan: AssetSelection | None = None) -> AutomationCondition:

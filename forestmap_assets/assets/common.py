@@ -72,6 +72,8 @@ PIPELINE: tuple[tuple[str, str], ...] = (
     ("residual_checks", "campaign"),
     ("integrated_map", "campaign"),
     ("tree_list", "campaign"),
+    ("occlusion_boundaries", "scan"),  # Men 2012 ch. 3, 6: where to scan next
+    ("next_vantage_points", "campaign"),
 )
 
 
@@ -111,6 +113,10 @@ def manifest_digest(campaign: Campaign, entries: tuple[str, ...]) -> str:
 def code_version(campaign: Campaign, stage: str) -> str:
     """Stage code version plus the hash of its resolved parameter sections and of the
     manifest entries it reads (``STAGE_MANIFEST``)."""
+    if stage not in CODE_VERSIONS:  # the exploration stages (Men 2012) version their settings
+        from .exploration import stage_version
+
+        return stage_version(campaign, stage)
     digests = [campaign.params.digest(s) for s in STAGE_PARAMS[stage]]
     if STAGE_MANIFEST.get(stage):
         digests.append("m" + manifest_digest(campaign, STAGE_MANIFEST[stage]))

@@ -37,6 +37,13 @@ def _version(stage: str, *configs) -> str:
     return f"v{CODE_VERSIONS[stage]}-{hashlib.sha256(text.encode()).hexdigest()[:16]}"
 
 
+def stage_version(campaign: Campaign, stage: str) -> str:
+    """Code version of ``occlusion_boundaries`` / ``next_vantage_points`` (stage version plus the
+    hash of its settings), as :func:`~.common.code_version` gives for the other stages."""
+    config = occlusion_config(campaign) if stage == "occlusion_boundaries" else exploration_config(campaign)
+    return _version(stage, config)
+
+
 def scan_surface(image, config: OcclusionConfig) -> dict[str, pd.DataFrame]:
     """The ``occlusion_boundaries`` bundle of one range image: ``boundaries`` (flagged pixels),
     ``surface`` (observed-surface voxels, levelled scan frame) and ``info`` (one row)."""
@@ -210,7 +217,7 @@ def exploration_assets(campaign: Campaign) -> list:
         ins={"range_images": AssetIn(key=key("range_images"))},
         partitions_def=parts,
         group_name="exploration",
-        code_version=_version("occlusion_boundaries", occ_cfg),
+        code_version=stage_version(campaign, "occlusion_boundaries"),
         description="Occlusion-boundary pixels of the organised range image: range-normalised "
         "spacing test Delta_s/r >= sin(Delta)/sin(5 deg - Delta) in the tilt and pan directions, "
         "combined by union, plus the range-variance test (Men 2012 3.3; men_spec 3.1), and the "
@@ -251,7 +258,7 @@ def exploration_assets(campaign: Campaign) -> list:
             "tree_list": AssetIn(key=key("tree_list")),
         },
         group_name="exploration",
-        code_version=_version("next_vantage_points", exp_cfg),
+        code_version=stage_version(campaign, "next_vantage_points"),
         description="Completeness and where to scan next: 2-D exploration grid (height histograms "
         "relative to the local ground; unmapped / ground / obstacle), coverage, frontier cells, "
         "and candidate positions reachable by shortest paths, ranked by the new area a 2-D "
