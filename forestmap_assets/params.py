@@ -162,6 +162,36 @@ class MappingParams(_Stage):
     chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
 
 
+def _section_from_config(name: str, config: type) -> type[_Stage]:
+    """A parameter section with the fields and defaults of a core settings dataclass, so the
+    exploration stages (Men 2012) are configured like every other stage."""
+    import dataclasses
+    import typing
+
+    from pydantic import create_model
+
+    hints = typing.get_type_hints(config)
+    return create_model(name, __base__=_Stage, **{
+        f.name: (hints[f.name], f.default) for f in dataclasses.fields(config)
+    })
+
+
+def _occlusion_section() -> type[_Stage]:
+    from .core.occlusion import OcclusionConfig
+
+    return _section_from_config("OcclusionParams", OcclusionConfig)
+
+
+def _exploration_section() -> type[_Stage]:
+    from .core.exploration import ExplorationConfig
+
+    return _section_from_config("ExplorationParams", ExplorationConfig)
+
+
+OcclusionParams = _occlusion_section()  # occlusion boundaries (Men 2012 3.3; men_spec 3.1)
+ExplorationParams = _exploration_section()  # grid, coverage, next vantage points (men_spec 7)
+
+
 class Params(BaseModel):
     """All stages' parameters for one campaign."""
 
@@ -175,6 +205,8 @@ class Params(BaseModel):
     submaps: SubmapParams = SubmapParams()
     registration: RegistrationParams = RegistrationParams()
     mapping: MappingParams = MappingParams()
+    occlusion: OcclusionParams = OcclusionParams()  # type: ignore[valid-type]
+    exploration: ExplorationParams = ExplorationParams()  # type: ignore[valid-type]
 
     def digest(self, stage: str) -> str:
         return getattr(self, stage).digest()
