@@ -5,6 +5,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+import pandas as pd
 import pytest
 from synthetic import Box, Cylinder, Scene, grid, render
 
@@ -199,6 +200,10 @@ def test_noise_corrected_symmetry_statistic_accepts_noisy_thin_stems():
     assert corr["valid"].mean() >= plain["valid"].mean()
     with pytest.raises(ValueError):
         fit_circle_models(img, seg, symmetry_statistic="runs")
+    # the statistic is also taken from the circle parameters (campaign presets / overrides)
+    cp = CircleParams(symmetry_statistic="noise_corrected")
+    from_params = final_circles(fit_circle_models(img, seg, cp))
+    pd.testing.assert_frame_equal(from_params, corr)
 
 
 def test_thesis_pillar_at_14_5_m():

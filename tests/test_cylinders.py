@@ -95,6 +95,21 @@ def test_gap_along_the_axis(gap, pieces):
     assert len(cyl) == pieces
 
 
+def test_centre_line_must_follow_the_circle_normals():
+    """(inferred) A chain whose centres climb at 45 deg while its circles were fitted
+    perpendicular to a 30 deg-clamped normal (an oblique branch) is no cylinder; a leaning stem
+    whose normals follow its centre line is kept, and the check can be switched off."""
+    c, _ = _straight(0.0, 1.0, axis=(1.0, 0.0, 1.0))  # centres along a 45 deg line
+    tilt30 = np.tile([np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))], (len(c), 1))
+    branch = _circles(c, tilt30, 0.05)
+    assert assemble_cylinders(branch).empty  # 15 deg > curvature_deg (12)
+    assert len(assemble_cylinders(branch, axis_normal_deg=20.0)) == 1
+    assert len(assemble_cylinders(branch, axis_normal_deg=np.inf)) == 1
+    c, n = _straight(0.0, 1.0, axis=(0.2, 0.1, 1.0))  # a leaning stem, normals = axis
+    n = n + np.random.default_rng(0).normal(0, 0.02, n.shape)  # a few degrees of normal noise
+    assert len(assemble_cylinders(_circles(c, n, 0.1))) == 1
+
+
 def test_short_isolated_and_invalid_circles_make_no_cylinder():
     short, ns = _straight(0.0, 0.4)  # 0.4 m < 0.5 m forest minimum
     assert len(assemble_cylinders(_circles(short, ns, 0.1))) == 0

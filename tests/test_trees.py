@@ -6,9 +6,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from forestmap_assets.core.geometry import compose, relative_pose, transform_points, wrap_deg
-from forestmap_assets.core.trees import cylinders_to_global, merge_trees
+from forestmap_assets.core.trees import cylinders_to_global, ground_under, merge_trees
 
 
 def _cyl(cid, base, lean, r0, r1, z0, z1, n=10):
@@ -68,3 +69,59 @@ def test_empty_inputs():
     cyl = cylinders_to_global({}, {})
     trees, labels = merge_trees(cyl)
     assert trees.empty and list(trees.columns)[:3] == ["tree_id", "x", "y"] and labels.size == 0
+
+
+def test_cylinders_to_global_records_the_observation_range():
+    per_scan = {"T": pd.DataFrame([_cyl(0, (3.0, 4.0, 0.0), (0.0, 0.0), 0.1, 0.1, 0.5, 2.5)])}
+    cyl = cylinders_to_global(per_scan, {"T": (10.0, -2.0, 0.3, 75.0)})
+    assert cyl["range_m"].iloc[0] == pytest.approx(5.0)
+    assert "range_m" in cylinders_to_global({}, {}).columns
+
+
+def test_ground_under_ignores_crown_hits_where_the_ground_was_not_seen():
+    # flat ground at 0.2; in 70 % of the cells around the stem only crown hits at 4-8 m remain
+    rng = np.random.default_rng(1)
+    z = np.full((60, 60), 0.2) + rng.normal(0, 0.01, (60, 60))
+    crown = rng.random((60, 60)) < 0.7
+    z[crown] = rng.uniform(4.0, 8.0, crown.sum())
+    xy, r = np.array([[3.0, 3.0]]), np.array([0.15])
+    assert ground_under(xy, r, z, 0.0, 0.0, 0.1)[0] == pytest.approx(0.2, abs=0.03)
+    plain = ground_under(xy, r, z, 0.0, 0.0, 0.1, low_quantile=0.0, band_m=np.inf)[0]
+    assert plain > 3.0  # the plain median of the annulus is a crown height
+
+
+def _one_stem_from(ranges_and_radii, n=50):
+    """Cylinders of one vertical stem at (0, 0) seen from scans at the given ranges."""
+    per_scan, poses = {}, {}
+    for k, (rng_m, radius) in enumerate(ranges_and_radii):
+        per_scan[f"S{k}"] = pd.DataFrame([_cyl(0, (rng_m, 0.0, 0.0), (0.0, 0.0), radius, radius,
+                                               0.5, 2.5, n=n)])
+        poses[f"S{k}"] = (-rng_m, 0.0, 0.0, 0.0)
+    return cylinders_to_global(per_scan, poses)
+
+
+def test_dbh_prefers_near_observations_and_weights_by_beam_footprint():
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    # near scans see r = 0.150, far scans (wide footprint, mixed pixels) r = 0.175
+    cyl = _one_stem_from([(6.0, 0.150), (9.0, 0.150), (22.0, 0.175), (26.0, 0.175)])
+    plain, _ = merge_trees(cyl, grid, range_weighting=False, dbh_max_range_m=None)
+    assert plain["dbh_m"].iloc[0] == pytest.approx(2 * 0.1625)
+    near_only, _ = merge_trees(cyl, grid)
+    assert near_only["dbh_m"].iloc[0] == pytest.approx(0.30)
+    weighted, _ = merge_trees(cyl, grid, dbh_max_range_m=None)
+    w = 1 / (0.042 + 0.003 * np.array([6.0, 9.0, 22.0, 26.0])) ** 2
+    expect = 2 * np.average([0.150, 0.150, 0.175, 0.175], weights=w)
+    assert weighted["dbh_m"].iloc[0] == pytest.approx(expect)
+    assert 0.30 < expect < 2 * 0.1625
+    # only far observations: they are used rather than giving no DBH
+    far, _ = merge_trees(_one_stem_from([(22.0, 0.175), (26.0, 0.175)]), grid)
+    assert far["dbh_m"].iloc[0] == pytest.approx(0.35)
+
+
+def test_dbh_weighted_median_ignores_one_occluded_cylinder():
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    cyl = _one_stem_from([(5.0, 0.16), (6.0, 0.16), (7.0, 0.16), (8.0, 0.09)])
+    mean, _ = merge_trees(cyl, grid)
+    med, _ = merge_trees(cyl, grid, dbh_statistic="median")
+    assert med["dbh_m"].iloc[0] == pytest.approx(0.32)
+    assert mean["dbh_m"].iloc[0] < 0.31

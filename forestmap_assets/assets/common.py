@@ -27,8 +27,8 @@ from ..campaign import Campaign
 CODE_VERSIONS: dict[str, str] = {
     "range_images": "1",
     "segments": "1",
-    "circle_models": "1",
-    "cylinder_segments": "1",
+    "circle_models": "2",
+    "cylinder_segments": "2",
     "line_segments": "1",
     "elevation_maps": "1",
     "submaps": "1",
@@ -36,8 +36,8 @@ CODE_VERSIONS: dict[str, str] = {
     "pairwise_registrations": "1",
     "optimal_map": "1",
     "residual_checks": "1",
-    "integrated_map": "1",
-    "tree_list": "1",
+    "integrated_map": "2",
+    "tree_list": "2",
 }
 
 # Which parameter sections each stage reads (their hash enters the code version).

@@ -11,7 +11,13 @@ Valid circles of the final iteration are walked bottom-up along their vertical c
 * the empty gap to it, measured along the axis, is at most ``max_gap_m`` (step 2c).
 
 A cylinder is kept when it holds at least ``min_circles`` circles and is at least
-``min_length_m`` long (step 6). Its axis is the principal direction (largest variance) of the
+``min_length_m`` long (step 6), and (inferred consistency check, ``axis_normal_deg``) when the
+line through its circle centres deviates from the mean normal of its circles by at most the
+curvature threshold: every circle was fitted in a plane perpendicular to its normal, so the
+centres of a real cylinder lie along that normal. Branches crossing the scan lines obliquely and
+foliage give chains of circles whose normals (clamped to ``max_axis_tilt_deg`` of vertical) and
+centre line disagree by 20-45 deg; stems by 1-3 deg (95th percentile 3 deg on simulated forests,
+see ``benchmarks/results.md``). Its axis is the principal direction (largest variance) of the
 member centres, its end points the projections of the extreme centres on that line (step 5),
 its radius the mean circle radius (step 4); truncated-cone end radii come from a linear fit of
 radius against position along the axis.
@@ -130,7 +136,7 @@ def cylinder_membership(circles: pd.DataFrame, params: CylinderParams | None = N
 
 
 def assemble_cylinders(circles_final: pd.DataFrame, params: CylinderParams | None = None, *,
-                       reference: str = "first",
+                       reference: str = "first", axis_normal_deg: float | None = None,
                        return_membership: bool = False):
     """Cylinder segments from the final circle models (spec 4, Th. 4.6.3).
 
@@ -139,13 +145,14 @@ def assemble_cylinders(circles_final: pd.DataFrame, params: CylinderParams | Non
     frame: ``x0, y0, z0`` the lower and ``x1, y1, z1`` the upper axis end point, ``radius_m``
     the mean circle radius, ``r0_m, r1_m`` the truncated-cone end radii (linear fit of radius
     against axial position), ``n_circles``, ``length_m``, ``chain_id`` and ``tilt_deg`` (axis
-    angle from vertical). With ``return_membership`` also returns a table
+    angle from vertical). ``axis_normal_deg``: see :func:`_axis_normal_limit` (inferred
+    centre-line / normal consistency check). With ``return_membership`` also returns a table
     ``segment_id, cylinder_id`` of the member circles.
     """
     p = params or CylinderParams()
     circles_final = circles_final.reset_index(drop=True)
     member = cylinder_membership(circles_final, p, reference=reference)
-    table = _cylinder_table(circles_final, member, p)
+    table = _cylinder_table(circles_final, member, p, axis_normal_deg)
     keep_ids = table.attrs.pop("kept_ids")
     if not return_membership:
         return table
@@ -159,7 +166,18 @@ def assemble_cylinders(circles_final: pd.DataFrame, params: CylinderParams | Non
     return table, mapping
 
 
-def _cylinder_table(circles: pd.DataFrame, member: np.ndarray, p: CylinderParams) -> pd.DataFrame:
+def _axis_normal_limit(p: CylinderParams, axis_normal_deg: float | None) -> float:
+    """Largest allowed angle (deg) between a cylinder's centre line and its circles' mean normal
+    (inferred): ``axis_normal_deg`` argument, else ``p.axis_normal_deg`` when the parameter model
+    has it, else the curvature threshold ``p.curvature_deg`` (the thesis' bound on how far
+    normals within one cylinder may turn). ``inf`` disables the check."""
+    if axis_normal_deg is None:
+        axis_normal_deg = getattr(p, "axis_normal_deg", None)
+    return float(p.curvature_deg if axis_normal_deg is None else axis_normal_deg)
+
+
+def _cylinder_table(circles: pd.DataFrame, member: np.ndarray, p: CylinderParams,
+                    axis_normal_deg: float | None = None) -> pd.DataFrame:
     sel = np.flatnonzero(member >= 0)
     if sel.size == 0:
         out = empty_cylinders()
@@ -198,6 +216,12 @@ def _cylinder_table(circles: pd.DataFrame, member: np.ndarray, p: CylinderParams
     r0 = rmean + beta * (tmin - tm)
     r1 = rmean + beta * (tmax - tm)
     keep = (counts >= p.min_circles) & (length >= p.min_length_m)
+    # consistency of the centre line with the circles' projection normals (inferred)
+    nrm = circles[["nx", "ny", "nz"]].to_numpy(np.float64)[sel]
+    nmean = np.add.reduceat(nrm, starts, axis=0)
+    nmean /= np.maximum(np.linalg.norm(nmean, axis=1, keepdims=True), 1e-12)
+    deviation = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", nmean, axis)), 0, 1)))
+    keep &= ~(deviation > _axis_normal_limit(p, axis_normal_deg))
     tilt = np.degrees(np.arccos(np.clip(axis[:, 2], -1, 1)))
     out = pd.DataFrame({
         "cylinder_id": np.arange(int(keep.sum()), dtype=np.int64),

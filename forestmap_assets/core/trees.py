@@ -7,11 +7,14 @@ breast height is forestmap's step (inferred, parameters below):
    their axes, evaluated at a common height, are closer than ``merge_factor`` x the smaller
    radius + ``merge_tolerance_m`` (different stems cannot be closer than the sum of radii);
 2. the ground under a stem is the median of the lowest-hit elevation cells in an annulus
-   around it (``ground_ring_m``), falling back to the lowest cylinder end;
+   around it, keeping only cells near the annulus' lowest surface (crown hits in cells the
+   ground was not seen in are ignored, :func:`ground_under`), falling back to the lowest
+   cylinder end;
 3. breast height is ``breast_height_m`` (1.3 m) above that ground; the stem position is the
    n_circles-weighted mean of the cylinder axes evaluated there, and DBH is twice the
    weighted mean truncated-cone radius at that height over cylinders reaching within
-   ``dbh_reach_m`` of it.
+   ``dbh_reach_m`` of it, preferring cylinders seen from within ``dbh_max_range_m`` and
+   weighting by the beam footprint at the observation range (:func:`merge_trees`).
 """
 
 from __future__ import annotations
@@ -26,7 +29,9 @@ TREE_COLUMNS = ["tree_id", "x", "y", "z", "dbh_m", "n_scans", "n_cylinders", "vi
 
 
 def cylinders_to_global(per_scan: dict[str, pd.DataFrame], poses: dict[str, tuple]) -> pd.DataFrame:
-    """Every cylinder of the registered scans in the global frame, with its ``scan``."""
+    """Every cylinder of the registered scans in the global frame, with its ``scan`` and
+    ``range_m``, the horizontal distance from that scan's sensor to the middle of the cylinder
+    axis (the observation range, used to weight radii in :func:`merge_trees`)."""
     from .geometry import transform_points
 
     frames = []
@@ -38,9 +43,11 @@ def cylinders_to_global(per_scan: dict[str, pd.DataFrame], poses: dict[str, tupl
         p1 = transform_points(cyl[["x1", "y1", "z1"]].to_numpy(float), poses[scan])
         g[["x0", "y0", "z0"]] = p0
         g[["x1", "y1", "z1"]] = p1
+        mid = 0.5 * (cyl[["x0", "y0"]].to_numpy(float) + cyl[["x1", "y1"]].to_numpy(float))
+        g["range_m"] = np.hypot(mid[:, 0], mid[:, 1])
         g.insert(0, "scan", scan)
         frames.append(g)
-    cols = ["scan", "cylinder_id", "x0", "y0", "z0", "x1", "y1", "z1", "radius_m", "r0_m", "r1_m", "n_circles"]
+    cols = ["scan", "cylinder_id", "x0", "y0", "z0", "x1", "y1", "z1", "radius_m", "r0_m", "r1_m", "n_circles", "range_m"]
     if not frames:
         return pd.DataFrame({c: pd.Series(dtype="int64" if c in ("cylinder_id", "n_circles") else "float64") for c in cols}).astype({"scan": "object"})
     out = pd.concat(frames, ignore_index=True)
@@ -63,6 +70,22 @@ def _radius_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
     span = np.where(np.abs(z1 - z0) > 1e-6, z1 - z0, 1.0)
     t = np.clip((z - z0) / span, 0.0, 1.0)  # no extrapolation of taper beyond the ends
     return r0 + t * (r1 - r0)
+
+
+def _weighted_stat(values: np.ndarray, weights: np.ndarray, statistic: str) -> float:
+    """Weighted ``"mean"`` or ``"median"`` (the smallest value whose cumulative weight reaches
+    half the total; the mean of the two middle values when it lands exactly on half)."""
+    if statistic == "mean":
+        return float(np.average(values, weights=weights))
+    if statistic != "median":
+        raise ValueError(f"dbh_statistic: unknown {statistic!r} (expected 'mean' or 'median')")
+    order = np.argsort(values)
+    v, c = values[order], np.cumsum(weights[order])
+    half = 0.5 * c[-1]
+    k = int(np.searchsorted(c, half))
+    if k + 1 < v.size and np.isclose(c[k], half):
+        return float(0.5 * (v[k] + v[k + 1]))
+    return float(v[k])
 
 
 def group_stems(cyl: pd.DataFrame, merge_factor: float = 0.75, merge_tolerance_m: float = 0.06) -> np.ndarray:
@@ -90,8 +113,17 @@ def group_stems(cyl: pd.DataFrame, merge_factor: float = 0.75, merge_tolerance_m
 
 
 def ground_under(xy: np.ndarray, radius: np.ndarray, grid_z: np.ndarray, x0: float, y0: float,
-                 cell_m: float, ring_m: tuple[float, float] = (0.15, 1.0)) -> np.ndarray:
-    """Median lowest-hit elevation in an annulus around each stem; NaN where no cell has data."""
+                 cell_m: float, ring_m: tuple[float, float] = (0.15, 1.0),
+                 low_quantile: float = 0.1, band_m: float = 0.5) -> np.ndarray:
+    """Ground elevation under each stem from the lowest-hit grid; NaN where no cell has data.
+
+    The median of the lowest-hit cells in an annulus around the stem that lie within ``band_m``
+    above the annulus' ``low_quantile`` quantile (inferred): far from the scanners the ground
+    next to a stem is hit only sparsely, and cells without a ground hit hold their lowest
+    *crown* hit, metres up, which moved a plain median by 4-7 m on about one stem in seven
+    (simulated 40 m plots, half resolution). ``low_quantile=0, band_m=inf`` gives the plain
+    median of every cell.
+    """
     out = np.full(len(xy), np.nan)
     if grid_z is None or grid_z.size == 0:
         return out
@@ -110,7 +142,8 @@ def ground_under(xy: np.ndarray, radius: np.ndarray, grid_z: np.ndarray, x0: flo
             vals = grid_z[iy[ok], ix[ok]]
             vals = vals[np.isfinite(vals)]
             if vals.size:
-                out[k] = float(np.median(vals))
+                low = np.quantile(vals, low_quantile)
+                out[k] = float(np.median(vals[vals <= low + band_m]))
     return out
 
 
@@ -122,11 +155,39 @@ def merge_trees(
     dbh_reach_m: float = 0.6,
     merge_factor: float = 0.75,
     merge_tolerance_m: float = 0.06,
+    range_weighting: bool = True,
+    beam_exit_m: float = 0.042,
+    beam_divergence_rad: float = 0.003,
+    dbh_max_range_m: float | None = 20.0,
+    dbh_statistic: str = "mean",
+    ground_low_quantile: float = 0.1,
+    ground_band_m: float = 0.5,
 ) -> tuple[pd.DataFrame, np.ndarray]:
     """Trees (``TREE_COLUMNS``) from global cylinders; also each cylinder's tree id.
 
     ``grid`` is an object with ``z`` (2-D, [iy, ix]), ``x0``, ``y0``, ``cell_m`` (the merged
-    lowest-hit elevation map) or None.
+    lowest-hit elevation map) or None; ``ground_low_quantile`` and ``ground_band_m`` go to
+    :func:`ground_under`.
+
+    DBH weighting (inferred; needs the ``range_m`` column of :func:`cylinders_to_global`, else
+    plain ``n_circles`` weights): a first-return beam widens a stem by mixed pixels at its
+    silhouette by up to the footprint radius, and the footprint grows with range (spec 1.1:
+    ``beam_exit_m + beam_divergence_rad * r``, 0.042 m + 3 mrad). Radii seen from far away are
+    therefore both noisier and biased high (simulated 40 m plots, cylinder radius error against
+    range: -0.2 cm below 10 m, +0.4 cm at 10-15 m, +0.9 cm at 15-20 m, +2.3 cm at 20-25 m,
+    +4.2 cm at 25-30 m). So (1) when cylinders near breast height were observed from within
+    ``dbh_max_range_m`` (20 m: about the farthest distance of the thesis' pillar study, 18.4 m,
+    and the simulator's visibility range; 15 m, also tried, did worse on the same six simulated
+    campaigns because a single near cylinder of partial arcs then decides), only those give
+    the DBH; (2) with ``range_weighting`` each
+    cylinder weighs ``n_circles / footprint(range_m)^2`` (inverse variance with the footprint
+    as the error scale); (3) ``dbh_statistic="median"`` takes the weighted median of the
+    cylinders' radii at breast height rather than their weighted mean (``"mean"``): a stem
+    partly hidden behind a nearer one gives a cylinder of partial arcs whose radius is far too
+    small (see ``benchmarks/results.md``, features, "Known limitation"), and with one such
+    cylinder among five or six good ones the median ignores it where the mean moves by
+    centimetres. ``dbh_max_range_m=None, range_weighting=False, dbh_statistic="mean"`` gives
+    the plain ``n_circles``-weighted mean.
     """
     if cyl.empty:
         return pd.DataFrame({c: pd.Series(dtype="float64") for c in TREE_COLUMNS}).astype(
@@ -138,12 +199,18 @@ def merge_trees(
     zhi = np.maximum(cyl["z0"].to_numpy(float), cyl["z1"].to_numpy(float))
     weights = cyl["n_circles"].to_numpy(float)
     radius = cyl["radius_m"].to_numpy(float)
+    has_range = "range_m" in cyl and bool(np.isfinite(cyl["range_m"].to_numpy(float)).all())
+    obs_range = cyl["range_m"].to_numpy(float) if has_range else np.zeros(len(cyl))
+    dbh_weights = weights.copy()
+    if has_range and range_weighting:
+        dbh_weights = weights / (beam_exit_m + beam_divergence_rad * obs_range) ** 2
     stems = np.unique(labels)
     # first pass: approximate stem xy (at the lowest visible point) for the ground look-up
     approx_xy = np.array([_axis_at(cyl[labels == s], np.full((labels == s).sum(), zlo[labels == s].min())).mean(0) for s in stems])
     approx_r = np.array([np.average(radius[labels == s], weights=weights[labels == s]) for s in stems])
     if grid is not None:
-        ground = ground_under(approx_xy, approx_r, grid.z, grid.x0, grid.y0, grid.cell_m)
+        ground = ground_under(approx_xy, approx_r, grid.z, grid.x0, grid.y0, grid.cell_m,
+                              low_quantile=ground_low_quantile, band_m=ground_band_m)
     else:
         ground = np.full(len(stems), np.nan)
     tree_of_cyl = np.zeros(len(cyl), dtype=int)
@@ -159,7 +226,13 @@ def merge_trees(
         use = near if near.any() else gap == gap.min()
         w = weights[m][use]
         xy = np.average(_axis_at(sub[use], zb[use]), axis=0, weights=w)
-        dbh = 2.0 * float(np.average(_radius_at(sub[use], zb[use]), weights=w)) if near.any() else np.nan
+        dbh = np.nan
+        if near.any():
+            close = near & (obs_range[m] <= dbh_max_range_m) if (
+                has_range and dbh_max_range_m is not None) else near
+            pick = close if close.any() else near
+            dbh = 2.0 * _weighted_stat(_radius_at(sub[pick], zb[pick]), dbh_weights[m][pick],
+                                       dbh_statistic)
         # visible length: union of the cylinders' height intervals
         order = np.argsort(zlo[m])
         total, cur_lo, cur_hi = 0.0, None, None
