@@ -47,6 +47,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the thesis's sites (spec 10.1): forest plot, parking lot (environment outdoor) "
                    "or office corridor (environment indoor); --plot-size is the lot / corridor ring size")
     s.add_argument("--people", type=int, default=0, help="people-shaped occluders (parking lot, corridor)")
+    s.add_argument("--colour", action="store_true",
+                   help="RGB per point: bark, foliage, ground and clutter colours under each scan's light "
+                   "(Men 2012 2.3), for hue-assisted ICP")
 
     r = sub.add_parser("run", help="materialise every asset of a campaign and write the exports")
     r.add_argument("campaign", type=Path)
@@ -107,6 +110,7 @@ def cmd_simulate(args) -> int:
         progress=lambda m: _say(args, m),
         site=args.site,
         site_kwargs={"people": args.people} if args.people else None,
+        scanner_kwargs={"colour": True} if args.colour else None,
     )
     if args.quiet:
         print(out)

@@ -326,3 +326,18 @@ def test_rejects_bad_arguments(tmp_path):
         simulate_campaign(tmp_path / "x", fmt="pcd")
     with pytest.raises(ValueError, match="cannot place"):
         make_forest(trees=400, plot_size=10.0, n_scans=2, seed=0)
+
+
+def test_simulate_colour_writes_rgb_that_the_reader_keeps(tmp_path):
+    """``forestmap simulate --colour``: every scan file carries RGB, bark and ground differ."""
+    from forestmap_assets.cli import main
+    from forestmap_assets.io.readers import read_scan
+
+    out = tmp_path / "c"
+    assert main(["--quiet", "simulate", str(out), "--scans", "2", "--trees", "8", "--plot-size", "16",
+                 "--resolution", "quarter", "--colour"]) == 0
+    for sid in ("T", "S"):
+        image = read_scan(out / "scans" / f"{sid}.npz")
+        assert image.rgb is not None and image.rgb.shape == image.range_m.shape + (3,)
+        hit = np.isfinite(image.range_m)
+        assert image.rgb[hit].std(axis=0).min() > 1.0  # not one flat colour

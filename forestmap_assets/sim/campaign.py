@@ -162,6 +162,8 @@ def write_scan_file(path: Path, result: ScanResult, fmt: str) -> None:
                   "elevation_deg": img.elevation_deg}
         if img.intensity is not None:
             arrays["intensity"] = img.intensity
+        if img.rgb is not None:
+            arrays["rgb"] = img.rgb
         save_npz(path, arrays)
     else:
         from forestmap_assets.io.writers import write_scan
