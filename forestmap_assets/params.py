@@ -145,6 +145,13 @@ class RegistrationParams(_Stage):
     min_matched_stems: int = 4  # (inferred) distinct features supporting an accepted result
     # (beyond the thesis, its spec 9 "future source"): dz of accepted pairs from the ground grids
     z_from_ground: bool = True
+    # observation sigmas (core/pair_registrations.py; beyond the thesis, calibrated on simulated
+    # campaigns, benchmarks/results.md "Whole pipeline"): tempered cell-cloud likelihood for x, y
+    # (likelihood_temperature) and heading (heading_temperature), None: JP eq. 6 as published
+    likelihood_temperature: float | None = 40.0
+    heading_temperature: float | None = 6.0
+    ground_min_sd_m: float = 0.002
+    feature_z_sd_m: float = 0.15
     # candidate pairs (spec 6.4 box; inferred selection rules)
     k_nearest: int = 4
     max_distance_m: float = 30.0

@@ -33,7 +33,7 @@ CODE_VERSIONS: dict[str, str] = {
     "elevation_maps": "1",
     "submaps": "1",
     "candidate_pairs": "1",
-    "pairwise_registrations": "1",
+    "pairwise_registrations": "2",
     "optimal_map": "1",
     "residual_checks": "1",
     "integrated_map": "2",

@@ -110,6 +110,10 @@ def mapping_assets(campaign: Campaign) -> list:
     def pairwise_registrations(context, candidate_pairs, submaps, elevation_maps):
         bundle = register_candidates(candidate_pairs, submaps or {}, params.registration,
                                      elevation=elevation_maps or {}, elevation_cell_m=params.elevation.cell_m,
+                                     likelihood_temperature=params.registration.likelihood_temperature,
+                                     heading_temperature=params.registration.heading_temperature,
+                                     ground_min_sd_m=params.registration.ground_min_sd_m,
+                                     feature_z_sd_m=params.registration.feature_z_sd_m,
                                      progress=lambda m: (context.log.info(m), report(m)))
         regs = bundle["registrations"]
         counts = regs["status"].value_counts().to_dict()

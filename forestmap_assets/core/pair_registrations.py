@@ -11,10 +11,38 @@ result may become an observation of the optimal map (inferred rules, all paramet
   score is within ``ambiguity_margin`` log-likelihood units of the best (thesis 5.3.3, spec 8.6);
 * ``accepted`` otherwise.
 
-Observation sigmas: the cell-cloud sigma of JP eq. (6) underestimates the uncertainty once the
-cloud shrinks to a few cells (spec 6.5). Each sigma is combined with the final cell's uniform
-quantisation sigma (step / sqrt(12)) and multiplied by ``sigma_scale``, calibrated on simulated
-campaigns (benchmarks/results.md, "Uncertainty").
+Observation sigmas (beyond the thesis, calibrated; :func:`observation_sigmas`). The cell-cloud
+sigma of JP eq. (6) with linear weights ``s - s_floor`` measures how far the branch and bound
+could not prune, not the likelihood: on simulated campaigns it was ~3x the true error (normalised
+pair and pose errors with RMS 0.2-0.5 at quarter and half resolution), while the thesis warns it can
+also underestimate once the cloud shrinks to a few cells (spec 6.5). forestmap therefore takes
+the sigma from the *tempered likelihood* over the same final cloud (inferred): weights
+``exp((s - s*) / T)`` over the final-level cells within ``hypothesis_separation_m`` of the peak
+(the coarse-to-fine history's last level, ``levels``). ``T = 1`` is Olson's likelihood taken
+literally, which treats every sub-map point as an independent measurement; but sub-map points
+lie every 0.05 m along fitted feature centre lines and all points of one line share its fit
+error, so the log-likelihood over-counts the evidence by about the number of points per fitted
+feature, and ``T`` = ``likelihood_temperature`` divides it back (default 40: a 2 m cylinder
+segment at 0.05 m spacing). The heading has its own ``heading_temperature`` (default 6): a
+shared error of one centre line shifts the translation directly but the heading only through
+its lever arm among many features, so the heading evidence is over-counted less. Both are
+calibrated on simulated 6-scan no-prior campaigns (quarter resolution, 5 seeds;
+benchmarks/results.md "mapping" re-derives the sigmas of the same registrations for several
+temperatures): T = 10 gives pair ``error / sigma`` RMS 1.6-1.7 in x and y and pose RMS 2.3-2.5;
+T = 40 gives pairs 0.85-0.92 and poses 1.2-1.4 (pair errors sharing a scan are correlated,
+which the network solution cannot know, so poses stay a little over-confident); heading with
+T = 40 would be conservative (0.45), with 6 it is 0.95 (pairs) / 0.85 (poses). No temperature
+from 10 to 60 made the link tests reject a correct registration there. The weighted standard
+deviation is combined with the final cell's quantisation sigma (``step / sqrt(12)``) and
+multiplied by ``sigma_scale``. ``likelihood_temperature=None`` keeps the JP eq. (6) cloud
+sigma. z: the dz taken from the ground (:mod:`.ground_z`) keeps its standard error of the
+median, floored at ``ground_min_sd_m`` (2 mm instead of the module's 5 mm, which made the
+normalised z errors 0.25; with 1 mm pose z came out at RMS 1.6, with 2 mm pairs 0.86 and poses
+1.16); a feature-based dz (no ground agreement) has its JP eq. (6) sigma combined in quadrature
+with ``feature_z_sd_m`` (0.15 m, inferred: near-vertical trunks barely constrain z, the
+thesis's cloud gave 0.29 m for ST and RT, Th. 6.4, and simulated feature-based dz err by
+0.16 m RMS while their cloud sigma is 0.02-0.1 m, which made the 8-sigma z test reject correct
+links).
 """
 
 from __future__ import annotations
@@ -96,9 +124,53 @@ def judge(result, params: RegistrationParams, centre, half_widths, *, min_matche
     return "accepted", "", extra
 
 
-def observation_sigmas(result, sigma_scale: float = 1.0) -> np.ndarray:
-    """Cloud sigma (JP eq. 6) combined with the final cell's quantisation sigma, scaled."""
-    sigma = np.nan_to_num(np.asarray(result.sigma, dtype=float))
+def tempered_cloud_sigma(levels: pd.DataFrame, peak, d_bar_m: float, temperature, *,
+                         separation_m: float = 0.3) -> np.ndarray:
+    """Standard deviation (dx, dy, dz, dheading_deg) of the final cell cloud around ``peak``
+    weighted by the tempered likelihood ``exp((s - s*) / temperature)`` (module docstring,
+    inferred; ``temperature`` one value or one per axis). Cells of the last level of ``levels`` (columns ``level, dx, dy, dz, dh_deg,
+    score``) farther than ``separation_m`` from the peak (heading as arc at ``d_bar_m``) belong to
+    other hypotheses and are left out. NaN when ``levels`` is empty."""
+    if levels is None or len(levels) == 0:
+        return np.full(4, np.nan)
+    last = levels[levels["level"] == levels["level"].max()]
+    p = last[["dx", "dy", "dz", "dh_deg"]].to_numpy(dtype=float).copy()
+    s = last["score"].to_numpy(dtype=float)
+    peak = np.asarray(peak, dtype=float)
+    p[:, 3] = peak[3] + wrap_deg(p[:, 3] - peak[3])
+    off = p - peak
+    off[:, 3] = np.radians(off[:, 3]) * max(float(d_bar_m), 0.0) if np.isfinite(d_bar_m) else 0.0
+    near = np.linalg.norm(off, axis=1) <= separation_m
+    if not near.any():
+        return np.full(4, np.nan)
+    p, s = p[near], s[near]
+    t = np.broadcast_to(np.asarray(temperature, dtype=float), (4,))
+    w = np.exp((s - s.max())[:, None] / t)  # (cells, axes)
+    mean = (w * p).sum(0) / w.sum(0)
+    return np.sqrt((w * (p - mean) ** 2).sum(0) / w.sum(0))
+
+
+def observation_sigmas(result, sigma_scale: float = 1.0, likelihood_temperature: float | None = 40.0,
+                       separation_m: float = 0.3, tempered_axes=(0, 1, 3),
+                       heading_temperature: float | None = 6.0) -> np.ndarray:
+    """Sigmas (dx, dy, dz, dheading_deg) of an accepted registration (module docstring): on
+    ``tempered_axes`` the tempered-likelihood cloud sigma (the JP eq. 6 cloud sigma when
+    ``likelihood_temperature`` is None or the result kept no levels), elsewhere the JP eq. 6
+    cloud sigma, combined with the final cell's quantisation sigma ``step / sqrt(12)``, times
+    ``sigma_scale``. ``heading_temperature`` (None: ``likelihood_temperature``) tempers the
+    heading axis (module docstring). z keeps the JP eq. 6 sigma by default (inferred): near-vertical trunks
+    leave the likelihood nearly flat in z and its feature-based peak errs by ~0.15 m, which the
+    wide linear-weight cloud covers and a tempered one does not."""
+    sigma = np.asarray(result.sigma, dtype=float)
+    if likelihood_temperature is not None:
+        th = likelihood_temperature if heading_temperature is None else heading_temperature
+        tempered = tempered_cloud_sigma(getattr(result, "levels", None), result.peak,
+                                        getattr(result, "d_bar_m", np.nan),
+                                        [likelihood_temperature] * 3 + [th],
+                                        separation_m=separation_m)
+        use = np.isin(np.arange(4), list(tempered_axes)) & np.isfinite(tempered)
+        sigma = np.where(use, tempered, sigma)
+    sigma = np.nan_to_num(sigma)
     step = np.nan_to_num(np.asarray(result.final_step, dtype=float))
     return sigma_scale * np.sqrt(sigma**2 + step**2 / 12.0)
 
@@ -124,6 +196,10 @@ def register_candidates(
     *,
     workers: int | None = None,
     sigma_scale: float = 1.0,
+    likelihood_temperature: float | None = 40.0,
+    heading_temperature: float | None = 6.0,
+    ground_min_sd_m: float = 0.002,
+    feature_z_sd_m: float = 0.15,
     min_matched_points: float = 40.0,
     ambiguity_margin: float = 10.0,
     elevation: dict[str, pd.DataFrame] | None = None,
@@ -131,6 +207,9 @@ def register_candidates(
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, pd.DataFrame]:
     """Register every candidate pair; return ``registrations``, ``levels`` and ``hypotheses``.
+
+    Sigmas: :func:`observation_sigmas` with ``sigma_scale`` and ``likelihood_temperature``
+    (module docstring).
 
     With ``params.z_from_ground`` and the scans' lowest-hit ``elevation`` grids, an accepted
     registration's dz and its sigma come from the ground (:mod:`.ground_z`) when the ground
@@ -174,14 +253,21 @@ def register_candidates(
             extra.update(figures)
             if why:
                 status, reason = "rejected", why
-        sd = observation_sigmas(res, sigma_scale) if res.status == "ok" else np.full(4, np.nan)
+        sd = (observation_sigmas(res, sigma_scale, likelihood_temperature,
+                                 params.hypothesis_separation_m,
+                                 heading_temperature=heading_temperature)
+              if res.status == "ok" else np.full(4, np.nan))
         centre = np.asarray(res.centre, dtype=float).copy()
+        if res.status == "ok":
+            sd[2] = np.hypot(sd[2], feature_z_sd_m)
         extra.update(dz_features=centre[2], sd_z_features=sd[2], z_source="features")
         if status == "accepted" and params.z_from_ground and elevation:
             from .ground_z import ground_dz
 
-            g = ground_dz(elevation.get(c.scan), elevation.get(c.reference), centre, elevation_cell_m)
-            if g.ok and abs(g.dz - centre[2]) <= 3 * sd[2] + 0.1:
+            g = ground_dz(elevation.get(c.scan), elevation.get(c.reference), centre, elevation_cell_m,
+                          min_sd_m=ground_min_sd_m)
+            gate = observation_sigmas(res, sigma_scale, None)[2]  # JP eq. 6, as before
+            if g.ok and abs(g.dz - centre[2]) <= 3 * gate + 0.1:
                 centre[2], sd[2] = g.dz, g.sd
                 extra["z_source"] = f"ground ({g.n_cells} cells)"
         peak = np.asarray(res.peak, dtype=float)

@@ -1,0 +1,70 @@
+"""Observation sigmas of a registration: the tempered-likelihood cell cloud (issue 5)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from forestmap_assets.core.pair_registrations import observation_sigmas, tempered_cloud_sigma
+
+SIGMA = np.array([0.01, 0.02, 0.05, 0.1])  # dx, dy, dz m, heading deg
+STEP = np.array([0.004, 0.004, 0.01, 0.02])
+PEAK = np.array([1.0, -2.0, 0.3, 179.9])  # heading near the wrap
+
+
+def _levels(temperature: float, rival_gap: float | None = None) -> pd.DataFrame:
+    """Final-level cells on a lattice around PEAK scoring ``-T/2 sum((p - PEAK)/SIGMA)^2``: the
+    tempered likelihood is then a Gaussian of width SIGMA. A coarser level and (optionally) a
+    rival cloud 2 m away, ``rival_gap`` below the peak, are added."""
+    k = np.arange(-12, 13)
+    grid = np.array(np.meshgrid(k, k, k, k, indexing="ij")).reshape(4, -1).T * STEP * 3.0
+    p = PEAK + grid
+    score = -0.5 * temperature * ((grid / SIGMA) ** 2).sum(1) - 5000.0
+    p[:, 3] = (p[:, 3] + 180.0) % 360.0 - 180.0
+    frame = pd.DataFrame(p, columns=["dx", "dy", "dz", "dh_deg"]).assign(level=7, score=score)
+    parts = [frame, frame.iloc[::50].assign(level=6, score=score[::50] + 1.0)]
+    if rival_gap is not None:
+        rival = frame.copy()
+        rival["dx"] += 2.0
+        rival["score"] -= rival_gap
+        parts.append(rival)
+    return pd.concat(parts, ignore_index=True)
+
+
+@pytest.mark.parametrize("temperature", [1.0, 10.0])
+def test_tempered_cloud_recovers_the_gaussian_width(temperature):
+    sd = tempered_cloud_sigma(_levels(temperature), PEAK, 10.0, temperature)
+    np.testing.assert_allclose(sd, SIGMA, rtol=0.03)
+    # at a higher temperature the same scores spread wider, by sqrt(T'/T)
+    wide = tempered_cloud_sigma(_levels(temperature), PEAK, 10.0, 4 * temperature)
+    np.testing.assert_allclose(wide[:2], 2 * SIGMA[:2], rtol=0.1)
+
+
+def test_tempered_cloud_leaves_out_other_hypotheses():
+    levels = _levels(10.0, rival_gap=1.0)  # a near-equal rival 2 m away
+    sd = tempered_cloud_sigma(levels, PEAK, 10.0, 10.0, separation_m=0.3)
+    np.testing.assert_allclose(sd, SIGMA, rtol=0.03)
+    merged = tempered_cloud_sigma(levels, PEAK, 10.0, 10.0, separation_m=5.0)
+    assert merged[0] > 0.5  # both clouds: metres
+    assert np.isnan(tempered_cloud_sigma(levels.iloc[:0], PEAK, 10.0, 10.0)).all()
+
+
+def test_observation_sigmas_tempered_axes_and_fallbacks():
+    jp = np.array([0.03, 0.04, 0.2, 0.3])
+    res = SimpleNamespace(sigma=tuple(jp), final_step=tuple(STEP), peak=tuple(PEAK), d_bar_m=10.0,
+                          levels=_levels(10.0))
+    got = observation_sigmas(res, likelihood_temperature=10.0, heading_temperature=None)
+    want = np.sqrt(np.r_[SIGMA[:2], jp[2], SIGMA[3]] ** 2 + STEP**2 / 12)
+    np.testing.assert_allclose(got, want, rtol=0.03)
+    # a heading temperature 4x lower halves the heading sigma only
+    sharp = observation_sigmas(res, likelihood_temperature=10.0, heading_temperature=2.5)
+    np.testing.assert_allclose(sharp[:3], got[:3])
+    assert sharp[3] == pytest.approx(np.hypot(SIGMA[3] / 2, STEP[3] / np.sqrt(12)), rel=0.05)
+    # the JP eq. 6 cloud sigma without a temperature or without levels, scaled by sigma_scale
+    old = 2.0 * np.sqrt(jp**2 + STEP**2 / 12)
+    np.testing.assert_allclose(observation_sigmas(res, 2.0, None), old)
+    res.levels = pd.DataFrame(columns=["level", "dx", "dy", "dz", "dh_deg", "score"])
+    np.testing.assert_allclose(observation_sigmas(res, 2.0, 10.0), old)
