@@ -241,6 +241,9 @@ def assess_pair(scan_submap: pd.DataFrame, ref_submap: pd.DataFrame, pose, centr
         return (f"degenerate: the matched features fix the pose only weakly along "
                 f"{sup['weak_direction_deg']:.0f} deg ({sup['support_m']:.2f} m of support < "
                 f"{min_support_m:g} m; e.g. only parallel wall lines match)"), figures
+    if not np.isfinite(max_rival_ratio):  # rival test off (forest preset): not searched
+        figures["rival_ratio"] = np.nan
+        return "", figures
     riv = rival_alignment(scan_submap, ref_submap, pose, centre, half_widths, params,
                           exclusion_m=exclusion_m, min_support_m=min_support_m,
                           box_heading_deg=box_heading_deg, match_m=match_m, spacing_m=spacing_m)
