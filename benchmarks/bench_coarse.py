@@ -50,6 +50,7 @@ from bench_registration import (  # noqa: E402
     success,
 )
 from forest_pairs import campaign_submaps  # noqa: E402
+from results_md import write_section  # noqa: E402
 
 from forestmap_assets.core.fourier import coarse_register, prepare_cloud  # noqa: E402
 from forestmap_assets.core.pair_registrations import judge  # noqa: E402
@@ -57,7 +58,6 @@ from forestmap_assets.core.registration import register_pair  # noqa: E402
 from forestmap_assets.params import RegistrationParams  # noqa: E402
 
 START, END = "<!-- coarse:start -->", "<!-- coarse:end -->"
-RESULTS = Path(__file__).with_name("results.md")
 PREP = dict(voxel_m=0.1, normal_k=20, max_range_m=25.0, z_band_m=(-4.0, 2.0))
 
 
@@ -174,15 +174,6 @@ def report(df: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def write_section(text: str, path: Path = RESULTS) -> None:
-    old = path.read_text() if path.exists() else "# Benchmarks\n"
-    if START in old and END in old:
-        new = old[: old.index(START)] + text + old[old.index(END) + len(END):]
-    else:
-        new = old.rstrip("\n") + "\n\n" + text + "\n"
-    path.write_text(new)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--extra-pairs", type=int, default=6)
@@ -198,7 +189,7 @@ def main() -> None:
     text = report(df)
     print(text)
     if not args.no_write:
-        write_section(text)
+        write_section("coarse", text)
 
 
 if __name__ == "__main__":

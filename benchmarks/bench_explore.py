@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import tempfile
 import time
 import warnings
@@ -36,20 +35,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from results_md import write_section  # noqa: E402
 
-RESULTS = Path(__file__).with_name("results.md")
 NAME = "explore"
-
-
-def write_section(name: str, body: str) -> None:
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    text = RESULTS.read_text() if RESULTS.exists() else "# Benchmark results\n"
-    block = f"{start}\n{body.rstrip()}\n{end}"
-    if start in text:
-        text = re.sub(re.escape(start) + r".*?" + re.escape(end), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    RESULTS.write_text(text)
 
 
 def _cell(v) -> str:

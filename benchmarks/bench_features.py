@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the analytic scene generator lives with the tests
 
 import synthetic as S  # noqa: E402
+from results_md import write_section  # noqa: E402
 
 from forestmap_assets.core import circles as C  # noqa: E402
 from forestmap_assets.core.circles import final_circles, fit_circle_models  # noqa: E402
@@ -38,7 +39,6 @@ from forestmap_assets.core.segments import segment_scan_lines  # noqa: E402
 from forestmap_assets.params import Params  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results.md"
-START, END = "<!-- features:start -->", "<!-- features:end -->"
 FITS = ("linear", "geometric", "ray")
 
 
@@ -260,21 +260,6 @@ def fmt_table(df: pd.DataFrame, floatfmt="{:.3f}") -> str:
     return "\n".join(lines)
 
 
-def write_section(text: str) -> None:
-    block = f"{START}\n{text.rstrip()}\n{END}\n"
-    if RESULTS.exists():
-        old = RESULTS.read_text()
-        if START in old and END in old:
-            pre, rest = old.split(START, 1)
-            post = rest.split(END, 1)[1].lstrip("\n")
-            new = pre + block + ("\n" + post if post else "")
-        else:
-            new = old.rstrip() + "\n\n" + block
-    else:
-        new = "# Benchmarks\n\n" + block
-    RESULTS.write_text(new)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3, help="timing runs per stage (median)")
@@ -430,7 +415,7 @@ def main(argv=None) -> int:
             ]
     write = not args.no_write
     if write:
-        write_section("\n".join(text))
+        write_section("features", "\n".join(text))
         print(f"updated {RESULTS}")
     print(f"benchmark done in {time.perf_counter() - t0:.0f} s")
     return 0

@@ -32,11 +32,11 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from results_md import write_section  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 
 START, END = "<!-- hicp:start -->", "<!-- hicp:end -->"
-RESULTS = Path(__file__).with_name("results.md")
 D6_T = np.array([1.014969, 2.00582, 0.706715])
 THESIS_T52 = {0.0: (166.89, 51), 0.05: (98.05, 33), 0.1: (93.07, 30), 0.2: (87.76, 28), 0.4: (73.11, 25),
               1.0: (56.06, 21), 2.0: (52.42, 19), 5.0: (42.25, 16), 10.0: (36.21, 14), 100.0: (28.08, 12)}
@@ -317,15 +317,6 @@ def report(d6, d8, pairs, poses, raw, info) -> str:
     return "\n".join(out)
 
 
-def write_section(text: str, path: Path = RESULTS) -> None:
-    old = path.read_text() if path.exists() else "# Benchmarks\n"
-    if START in old and END in old:
-        new = old[: old.index(START)] + text + old[old.index(END) + len(END):]
-    else:
-        new = old.rstrip("\n") + "\n\n" + text + "\n"
-    path.write_text(new)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", type=Path, default=Path("/tmp/forestmap_bench_hicp"))
@@ -358,7 +349,7 @@ def main() -> None:
     text = report(d6, d8, pairs, poses, raw, info)
     print(text)
     if not args.no_write:
-        write_section(text)
+        write_section("hicp", text)
 
 
 if __name__ == "__main__":

@@ -13,26 +13,13 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
-RESULTS = Path(__file__).with_name("results.md")
-
-
-def write_section(name: str, body: str) -> None:
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    text = RESULTS.read_text() if RESULTS.exists() else "# Benchmark results\n"
-    block = f"{start}\n{body.rstrip()}\n{end}"
-    if start in text:
-        text = re.sub(re.escape(start) + r".*?" + re.escape(end), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    RESULTS.write_text(text)
+from results_md import write_section  # noqa: E402
 
 
 def pair_errors(regs: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:

@@ -49,13 +49,12 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).parent))
 
 from forest_pairs import campaign_pairs, campaign_submaps, sector_crop  # noqa: E402
+from results_md import write_section  # noqa: E402
 
 from forestmap_assets.core.pair_registrations import judge  # noqa: E402
 from forestmap_assets.core.registration import register_pair  # noqa: E402
 from forestmap_assets.params import RegistrationParams  # noqa: E402
 
-START, END = "<!-- registration:start -->", "<!-- registration:end -->"
-RESULTS = Path(__file__).with_name("results.md")
 # proposed addition to core.pair_registrations.judge (issue 4 report): reject a result supported
 # by fewer distinct matched stems than this (one long stem can match hundreds of points)
 MIN_MATCHED_STEMS = 4
@@ -272,16 +271,6 @@ def table(df: pd.DataFrame, peer: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def write_section(text, path=RESULTS):
-    body = f"{START}\n## Registration (`benchmarks/bench_registration.py`)\n\n{text}\n{END}\n"
-    old = path.read_text() if path.exists() else "# Benchmarks\n\n"
-    if START in old and END in old:
-        new = old[: old.index(START)] + body.rstrip("\n") + old[old.index(END) + len(END):]
-    else:
-        new = old.rstrip("\n") + "\n\n" + body
-    path.write_text(new)
-
-
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--box-pairs", type=int, default=8)
@@ -296,7 +285,7 @@ def main():
     text = table(df, peer)
     print(text)
     if not a.no_write:
-        write_section(text)
+        write_section("registration", "## Registration (`benchmarks/bench_registration.py`)\n\n" + text)
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ from pathlib import Path  # noqa: E402
 import gtsam  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from results_md import write_section  # noqa: E402
 
 from forestmap_assets.core.chaining import chain_poses, wrap_deg  # noqa: E402
 from forestmap_assets.core.optimal_map import solve_incremental, solve_network  # noqa: E402
@@ -40,7 +41,6 @@ from forestmap_assets.core.optimal_map import solve_incremental, solve_network  
 ROOT = Path(__file__).resolve().parent
 TABLE_6_6 = ROOT.parent / "tests" / "data" / "thesis_tables" / "table_6_6_forest_local.csv"
 RESULTS = ROOT / "results.md"
-START, END = "<!-- solver:start -->", "<!-- solver:end -->"
 VAL = ["dx", "dy", "dz", "dheading_deg"]
 SD = ["sd_x", "sd_y", "sd_z", "sd_heading_deg"]
 POSE = ["x", "y", "z", "heading_deg"]
@@ -256,20 +256,6 @@ def to_markdown(table: pd.DataFrame, command: str) -> str:
     return "\n".join(lines)
 
 
-def write_section(text: str, path: Path = RESULTS) -> None:
-    """Replace (or append) this benchmark's section of ``results.md``, leaving others alone."""
-    block = f"{START}\n{text}\n{END}"
-    old = path.read_text() if path.exists() else "# Benchmarks\n"
-    if START in old and END in old:
-        head, rest = old.split(START, 1)
-        new = head + block + rest.split(END, 1)[1]
-    else:
-        new = old.rstrip("\n") + "\n\n" + block + "\n"
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(new)
-    os.replace(tmp, path)
-
-
 def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="30,100", help="simulated network sizes (scans)")
@@ -284,7 +270,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     if not args.no_write:
         cmd = "python benchmarks/bench_solver.py" + (f" --sizes {args.sizes}"
                                                      if args.sizes != "30,100" else "")
-        write_section(to_markdown(table, cmd))
+        write_section("solver", to_markdown(table, cmd))
         print(f"wrote {RESULTS}")
     return table
 

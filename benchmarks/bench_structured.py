@@ -18,12 +18,12 @@ from __future__ import annotations
 import argparse
 import pickle
 import platform
-import re
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from results_md import write_section  # noqa: E402
 
 from forestmap_assets.campaign import load_campaign
 from forestmap_assets.core.candidates import candidate_pairs
@@ -71,7 +71,6 @@ from forestmap_assets.sim.sites import (
 )
 
 HERE = Path(__file__).parent
-RESULTS = HERE / "results.md"
 PLOT = HERE / "structured_pillar.png"
 CACHE = Path("/tmp/forestmap_bench_structured")
 MARK = "structured"
@@ -589,17 +588,6 @@ def failures(fresh: bool) -> tuple[pd.DataFrame, list[str]]:
 
 
 # ---- results ---------------------------------------------------------------------------------
-def write_section(text: str, path: Path = RESULTS) -> None:
-    start, end = f"<!-- {MARK}:start -->", f"<!-- {MARK}:end -->"
-    old = path.read_text() if path.exists() else "# Benchmarks\n"
-    block = f"{start}\n{text.strip()}\n{end}"
-    if start in old and end in old:
-        new = re.sub(re.escape(start) + r".*?" + re.escape(end), lambda _: block, old, flags=re.S)
-    else:
-        new = old.rstrip() + "\n\n" + block + "\n"
-    path.write_text(new)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--fresh", action="store_true")
@@ -803,7 +791,7 @@ def main() -> None:
         print(text, flush=True)
 
     parts.append(f"Total run time {time.perf_counter() - t_start:.0f} s.")
-    write_section("\n\n".join(parts))
+    write_section(MARK, "\n\n".join(parts))
 
 
 if __name__ == "__main__":

@@ -425,6 +425,23 @@ def _save_plan(out: Path, k: int, sm: SurveyMap, title: str) -> None:
     fig.savefig(out / "explore" / f"step_{k:02d}.png", dpi=90)
 
 
+
+def _plot_and_streams(plot_size, trees, seed, resolution, start_xy, forest_kwargs, scanner_kwargs):
+    """The virtual plot of ``seed`` and its random streams: scanner noise (seed sequence),
+    walking and a priori (generators); the same for :func:`explore` and
+    :func:`survey_positions`, so both survey one plot alike."""
+    vp, ss = make_plot(
+        plot_size,
+        trees,
+        seed,
+        resolution=resolution,
+        start_xy=start_xy,
+        forest_kwargs=forest_kwargs,
+        scanner_kwargs=scanner_kwargs,
+    )
+    ss_walk, ss_noise, ss_prior = ss.spawn(3)
+    return vp, ss_noise, np.random.default_rng(ss_walk), np.random.default_rng(ss_prior)
+
 def explore(
     out,
     *,
@@ -458,17 +475,9 @@ def explore(
         raise ValueError("budget: need at least one scan")
     t_start = time.perf_counter()
     out = Path(out)
-    vp, ss = make_plot(
-        plot_size,
-        trees,
-        seed,
-        resolution=resolution,
-        start_xy=start_xy,
-        forest_kwargs=forest_kwargs,
-        scanner_kwargs=scanner_kwargs,
+    vp, ss_noise, walk_rng, prior_rng = _plot_and_streams(
+        plot_size, trees, seed, resolution, start_xy, forest_kwargs, scanner_kwargs
     )
-    ss_walk, ss_noise, ss_prior = ss.spawn(3)
-    walk_rng, prior_rng = np.random.default_rng(ss_walk), np.random.default_rng(ss_prior)
     config = replace(
         config or ExplorationConfig(),
         strategy=strategy,
@@ -730,17 +739,9 @@ def survey_positions(
     say = progress or (lambda _m: None)
     t_start = time.perf_counter()
     out = Path(out)
-    vp, ss = make_plot(
-        plot_size,
-        trees,
-        seed,
-        resolution=resolution,
-        start_xy=start_xy,
-        forest_kwargs=forest_kwargs,
-        scanner_kwargs=scanner_kwargs,
+    vp, ss_noise, walk_rng, prior_rng = _plot_and_streams(
+        plot_size, trees, seed, resolution, start_xy, forest_kwargs, scanner_kwargs
     )
-    ss_walk, ss_noise, ss_prior = ss.spawn(3)
-    walk_rng, prior_rng = np.random.default_rng(ss_walk), np.random.default_rng(ss_prior)
     config = replace(
         config or ExplorationConfig(), plot=tuple(map(tuple, vp.plot_polygon().tolist()))
     )

@@ -1133,6 +1133,28 @@ def _score(
     return ev
 
 
+
+def _thesis_row(e, cell, dist: np.ndarray, feasible: bool, source: str) -> dict:
+    """A proposal row of the thesis strategy (scored by expected new area alone) from the
+    evaluation ``e`` of grid cell ``cell``; ``dist`` the walking distances."""
+    return dict(
+        x=e.x,
+        y=e.y,
+        ix=int(cell[0]),
+        iy=int(cell[1]),
+        expected_new_m2=e.expected_new_m2,
+        expected_gain_m2=e.expected_new_m2,
+        incomplete_stems=int(e.incomplete_stems),
+        overlap_share=e.overlap_share,
+        common_stems=int(e.common_stems),
+        reference_scan=e.reference_scan,
+        visible_stems=int(e.visible_stems),
+        path_m=float(dist[cell[0], cell[1]]),
+        score=float(e.expected_new_m2),
+        feasible=feasible,
+        source=source,
+    )
+
 def thesis_next_vantage(
     grid,
     classes,
@@ -1210,25 +1232,7 @@ def thesis_next_vantage(
         k = int(far.max()) if len(far) else 0
         sel = path[k]
         first = ev.iloc[k]
-        rows.append(
-            dict(
-                x=first.x,
-                y=first.y,
-                ix=int(sel[0]),
-                iy=int(sel[1]),
-                expected_new_m2=first.expected_new_m2,
-                expected_gain_m2=first.expected_new_m2,
-                incomplete_stems=int(first.incomplete_stems),
-                overlap_share=first.overlap_share,
-                common_stems=int(first.common_stems),
-                reference_scan=first.reference_scan,
-                visible_stems=int(first.visible_stems),
-                path_m=float(dist[sel[0], sel[1]]),
-                score=float(first.expected_new_m2),
-                feasible=bool(ok[k]),
-                source="thesis",
-            )
-        )
+        rows.append(_thesis_row(first, sel, dist, bool(ok[k]), "thesis"))
         paths[1] = grid.cell_xy(path[: k + 1, 0], path[: k + 1, 1])
         # the other candidates (backups first), unshrunk, in the thesis's order of alignment
         rest = top[pick[1:]]
@@ -1246,25 +1250,7 @@ def thesis_next_vantage(
                 config, ev2["common_stems"].to_numpy(), ev2["overlap_share"].to_numpy()
             )
             for j, (c, e) in enumerate(zip(rest, ev2.itertuples(), strict=True)):
-                rows.append(
-                    dict(
-                        x=e.x,
-                        y=e.y,
-                        ix=int(c[0]),
-                        iy=int(c[1]),
-                        expected_new_m2=e.expected_new_m2,
-                        expected_gain_m2=e.expected_new_m2,
-                        incomplete_stems=int(e.incomplete_stems),
-                        overlap_share=e.overlap_share,
-                        common_stems=int(e.common_stems),
-                        reference_scan=e.reference_scan,
-                        visible_stems=int(e.visible_stems),
-                        path_m=float(dist[c[0], c[1]]),
-                        score=float(e.expected_new_m2),
-                        feasible=bool(ok2[j]),
-                        source="backup" if j < 2 else "candidate",
-                    )
-                )
+                rows.append(_thesis_row(e, c, dist, bool(ok2[j]), "backup" if j < 2 else "candidate"))
     table = pd.DataFrame(rows, columns=[c for c in PROPOSAL_COLUMNS if c != "rank"])
     table.insert(0, "rank", np.arange(1, len(table) + 1))
     return VantagePlan(
