@@ -30,9 +30,19 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="forestmap", description="Registered, checked 3-D forest maps from TLS scans.")
     p.add_argument("--quiet", "-q", action="store_true", help="print only errors and final paths")
     p.add_argument("--debug", action="store_true", help="on an error, show the traceback, not one line")
+    # the same two flags after the sub-command (``forestmap run DIR --quiet``); SUPPRESS keeps
+    # the top-level value when they are not repeated there
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", "-q", action="store_true", default=argparse.SUPPRESS,
+                        help="print only errors and final paths")
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="on an error, show the traceback, not one line")
     sub = p.add_subparsers(dest="command", required=True)
 
-    s = sub.add_parser("simulate", help="write a synthetic campaign and its ground truth")
+    def command(name: str, help: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help, parents=[common])
+
+    s = command("simulate", "write a synthetic campaign and its ground truth")
     s.add_argument("out", type=Path)
     s.add_argument("--scans", type=int, default=6)
     s.add_argument("--trees", type=int, default=40)
@@ -51,7 +61,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="RGB per point: bark, foliage, ground and clutter colours under each scan's light "
                    "(Men 2012 2.3), for hue-assisted ICP")
 
-    r = sub.add_parser("run", help="materialise every asset of a campaign and write the exports")
+    r = command("run", "materialise every asset of a campaign and write the exports")
     r.add_argument("campaign", type=Path)
     r.add_argument("--out", type=Path, default=None)
     r.add_argument("--executor", choices=["in_process", "multiprocess", "dask"], default="in_process")
@@ -64,19 +74,19 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--no-cloud", action="store_true", help="do not write cloud.laz / cloud.ply")
     r.add_argument("--no-report", action="store_true", help="do not write map.png / report.html")
 
-    v = sub.add_parser("solve", help="optimal map and residuals from a table of pairwise observations")
+    v = command("solve", "optimal map and residuals from a table of pairwise observations")
     v.add_argument("observations", type=Path)
     v.add_argument("--order", default=None, help="comma separated scan order; the first is the reference")
     v.add_argument("--out", type=Path, default=None)
 
-    st = sub.add_parser("status", help="state of each asset of a campaign")
+    st = command("status", "state of each asset of a campaign")
     st.add_argument("campaign", type=Path)
 
-    u = sub.add_parser("ui", help="start the Dagster UI on this project's workspace")
+    u = command("ui", "start the Dagster UI on this project's workspace")
     u.add_argument("--port", type=int, default=3000)
     u.add_argument("--host", default="127.0.0.1")
 
-    e = sub.add_parser("explore", help="plan and simulate a whole survey (next-best-view)")
+    e = command("explore", "plan and simulate a whole survey (next-best-view)")
     e.add_argument("out", type=Path)
     e.add_argument("--plot-size", type=float, default=40.0)
     e.add_argument("--trees", type=int, default=40)

@@ -322,9 +322,12 @@ def range_mask_figure(
     *,
     width: float = 9.0,
     label: str = "mask",
+    outlines: list[np.ndarray] | None = None,
+    outline_label: str = "cylinder segments",
 ) -> Figure:
     """A small picture for the Dagster UI: the range image in grey (robust limits, pale blue =
-    no return, axes in degrees) with a boolean ``mask`` (segments, circles) in red on top."""
+    no return, axes in degrees) with a boolean ``mask`` (segments, circles, occlusion
+    boundaries) in red on top and optional ``outlines`` (:func:`cylinder_outlines`) in orange."""
     extent = _angles_extent(image)
     lo, hi = range_limits(image)
     span_az, span_el = extent[1] - extent[0], extent[3] - extent[2]
@@ -344,6 +347,12 @@ def range_mask_figure(
         rgba[mask] = (0.9, 0.05, 0.05, 0.85)
         ax.imshow(rgba, extent=extent, interpolation="nearest", aspect="equal")
         title = f"{title} (red: {label}, {int(mask.sum())} pixels)"
+    if outlines:
+        for poly in outlines:
+            ax.plot(poly[:, 0], poly[:, 1], color="#ff8c00", lw=0.9)
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        title = f"{title} (orange: {len(outlines)} {outline_label})"
     cb = fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, extend="both")
     cb.set_label("range (m)")
     ax.set_title(title, fontsize=10)

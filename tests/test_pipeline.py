@@ -36,3 +36,27 @@ def test_pipeline_places_every_scan_and_finds_trees(tmp_path, prior):
     assert set(regs["status"]) <= {"accepted", "rejected", "failed"}
     residuals = pd.read_csv(root / "outputs" / "residuals.csv")
     assert (residuals["verdict"] == "ok").all()
+
+
+def test_assets_carry_pictures_for_the_dagster_ui(tmp_path):
+    """Every stage whose result is a picture-able thing attaches a PNG (inline Markdown image)
+    to its materialisation: range image, segment / circle masks, cylinders over the range image
+    (JP Fig. 7), occlusion boundaries, network, merged elevation map, DBH histogram, plan."""
+    from dagster import DagsterInstance
+
+    root = simulate_campaign(tmp_path / "plot", resolution="quarter", plot_size=20.0, trees=12, scans=2,
+                             seed=3, prior_error=(1.0, 10.0))
+    assert run_campaign(root, progress=lambda m: None).failures == []
+    pictured = {}
+    instance = DagsterInstance.get()
+    for key in instance.get_asset_keys():
+        event = instance.get_latest_materialization_event(key)
+        for name, value in (event.asset_materialization.metadata if event else {}).items():
+            if "data:image/png;base64," in str(getattr(value, "value", "")):
+                pictured.setdefault(key.path[-1], set()).add(name)
+    expected = {"range_images": "range_image", "segments": "segment_mask", "circle_models": "circle_mask",
+                "cylinder_segments": "cylinders_picture", "occlusion_boundaries": "occlusion_boundaries",
+                "optimal_map": "network", "integrated_map": "elevation_map", "tree_list": "dbh_histogram",
+                "next_vantage_points": "picture"}
+    missing = {stage: name for stage, name in expected.items() if name not in pictured.get(stage, set())}
+    assert not missing, missing

@@ -8,7 +8,6 @@ import io
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import pandas as pd
 import pyarrow as pa
 from dagster import (
@@ -171,27 +170,6 @@ def png_metadata(fig) -> MetadataValue:
     plt.close(fig)
     data = base64.b64encode(buf.getvalue()).decode()
     return MetadataValue.md(f"![image](data:image/png;base64,{data})")
-
-
-def range_image_figure(range_m: np.ndarray, title: str, overlay: np.ndarray | None = None):
-    """Small picture of a range image, optionally with a boolean mask overlaid in red."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows, cols = range_m.shape
-    fig, ax = plt.subplots(figsize=(8, max(1.5, 8 * rows / max(cols, 1))))
-    img = ax.imshow(range_m, cmap="viridis", aspect="auto", interpolation="nearest")
-    if overlay is not None and overlay.any():
-        rgba = np.zeros(overlay.shape + (4,))
-        rgba[overlay] = (1.0, 0.1, 0.1, 0.9)
-        ax.imshow(rgba, aspect="auto", interpolation="nearest")
-    fig.colorbar(img, ax=ax, label="range (m)", fraction=0.03)
-    ax.set_title(title)
-    ax.set_xlabel("column (azimuth)")
-    ax.set_ylabel("row (elevation)")
-    return fig
 
 
 # --- per-scan asset checks (circle_models, cylinder_segments) -------------------------------

@@ -19,7 +19,8 @@ from dagster import AssetIn, MetadataValue, Output, asset
 from ..campaign import Campaign
 from ..core.exploration import ExplorationConfig, VantagePlan
 from ..core.occlusion import OcclusionConfig
-from .common import asset_key, data_version, png_metadata, range_image_figure, scan_partitions
+from ..figures import range_mask_figure
+from .common import asset_key, data_version, png_metadata, scan_partitions
 
 CODE_VERSIONS = {"occlusion_boundaries": "1", "next_vantage_points": "1"}
 
@@ -241,9 +242,8 @@ def exploration_assets(campaign: Campaign) -> list:
             "pan_threshold": round(float(info["median_pan_threshold"]), 5),
             "surface_voxels": len(bundle["surface"]),
             "occlusion_boundaries": png_metadata(
-                range_image_figure(
-                    image.range_m, f"occlusion boundaries, scan {context.partition_key}", mask
-                )
+                range_mask_figure(image, mask, f"occlusion boundaries, scan {context.partition_key}",
+                                  label="occlusion boundaries")
             ),
         }
         return Output(bundle, metadata=meta, data_version=data_version(bundle))

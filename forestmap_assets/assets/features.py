@@ -8,7 +8,7 @@ from dagster import AssetIn, MetadataValue, Output, asset
 
 from ..campaign import Campaign
 from ..core.range_image import RangeImage
-from ..figures import circle_mask, range_mask_figure
+from ..figures import circle_mask, cylinder_outlines, range_mask_figure
 from .common import (
     asset_key,
     circle_check_specs,
@@ -110,7 +110,7 @@ def feature_assets(campaign: Campaign) -> list:
 
     @asset(
         key=key("cylinder_segments"),
-        ins=ins("circle_models"),
+        ins=ins("range_images", "circle_models"),
         partitions_def=parts,
         group_name="features",
         code_version=code_version(campaign, "cylinder_segments"),
@@ -118,7 +118,7 @@ def feature_assets(campaign: Campaign) -> list:
         "the curvature threshold and gaps, filtered by length (thesis 4.6.3; spec 4).",
         check_specs=cylinder_check_specs(key("cylinder_segments")),
     )
-    def cylinder_segments(context, circle_models):
+    def cylinder_segments(context, range_images, circle_models):
         final = circle_models[circle_models["iteration"] == circle_models["iteration"].max()] if len(circle_models) else circle_models
         table = assemble_cylinders(final, params.cylinders, reference=params.cylinders.curvature_reference)
         meta = {
@@ -126,6 +126,11 @@ def feature_assets(campaign: Campaign) -> list:
             "total_length_m": round(float(table["length_m"].sum()), 2) if len(table) else 0.0,
             "median_radius_m": round(float(table["radius_m"].median()), 4) if len(table) else 0.0,
         }
+        image = _image(range_images)  # JP Fig. 7d: the cylinders over the range image
+        meta["cylinders_picture"] = png_metadata(
+            range_mask_figure(image, None, f"cylinder segments, scan {context.partition_key}",
+                              outlines=cylinder_outlines(image, table))
+        )
         yield Output(table, metadata=meta, data_version=data_version(table))
         yield from cylinder_checks(table, limits)
 

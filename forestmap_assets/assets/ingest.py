@@ -15,12 +15,12 @@ from dagster import (
 
 from ..campaign import Campaign
 from ..core.range_image import RangeImage
+from ..figures import range_mask_figure
 from .common import (
     asset_key,
     code_version,
     data_version,
     png_metadata,
-    range_image_figure,
     scan_partitions,
 )
 
@@ -85,7 +85,7 @@ def ingest_assets(campaign: Campaign) -> list:
             "max_range_m": float(np.max(finite)) if valid else 0.0,
             "has_rgb": image.rgb is not None,
             "tilt_deg": MetadataValue.json(list(image.tilt_deg)),
-            "range_image": png_metadata(range_image_figure(image.range_m, f"scan {sid}")),
+            "range_image": png_metadata(range_mask_figure(image, None, f"range image, scan {sid}")),
         }
         return Output(table, metadata=meta, data_version=data_version(table))
 

@@ -16,8 +16,9 @@ from dagster import (
 )
 
 from ..campaign import Campaign
+from ..figures import dbh_histogram, elevation_figure, network_figure
 from ..progress import report
-from .common import asset_key, code_version, data_version
+from .common import asset_key, code_version, data_version, png_metadata
 
 POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
 
@@ -168,6 +169,7 @@ def mapping_assets(campaign: Campaign) -> list:
             "admitted_links": int((links["status"] == "admitted").sum()) if len(links) else 0,
             "rejected_links": int((links["status"] == "rejected").sum()) if len(links) else 0,
             "poses": _md_table(poses),
+            "network": png_metadata(network_figure(poses, regs, links, title=f"{campaign.name}: registration network")),
         }
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
@@ -226,6 +228,8 @@ def mapping_assets(campaign: Campaign) -> list:
         elevation = elevation_to_table(grid) if grid is not None else elevation_to_table(elevation_from_table(pd.DataFrame()))
         bundle = {"cylinders": cylinders, "elevation": elevation, "scans": placed.reset_index(drop=True)}
         meta = {"cylinders": len(cylinders), "elevation_cells": len(elevation), "scans": len(placed)}
+        if grid is not None:
+            meta["elevation_map"] = png_metadata(elevation_figure(grid, placed, crop=False, title=f"{campaign.name}: merged elevation map"))
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
     @asset(
@@ -243,7 +247,8 @@ def mapping_assets(campaign: Campaign) -> list:
         dbh = trees["dbh_m"].dropna()
         meta = {"trees": len(trees), "with_dbh": int(len(dbh)),
                 "median_dbh_m": round(float(dbh.median()), 3) if len(dbh) else 0.0,
-                "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum())}
+                "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum()),
+                "dbh_histogram": png_metadata(dbh_histogram(trees, title=f"{campaign.name}: DBH of {len(dbh)} trees"))}
         return Output(trees, metadata=meta, data_version=data_version(trees))
 
     return [candidate_pairs, pairwise_registrations, optimal_map, residual_checks, integrated_map, tree_list]
