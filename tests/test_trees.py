@@ -125,3 +125,26 @@ def test_dbh_weighted_median_ignores_one_occluded_cylinder():
     med, _ = merge_trees(cyl, grid, dbh_statistic="median")
     assert med["dbh_m"].iloc[0] == pytest.approx(0.32)
     assert mean["dbh_m"].iloc[0] < 0.31
+
+
+def test_dbh_limits_a_noisy_cylinder_taper_and_reaches_a_near_cylinder_above():
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    # one cylinder 0.5-2.5 m, fitted r0 = 0.17 at the bottom, r1 = 0.11 at the top (3 cm/m):
+    # the stem is r = 0.14 at mid height; at breast height (1.3 m) the fitted cone says 0.146
+    cyl = cylinders_to_global({"A": pd.DataFrame([_cyl(0, (8.0, 0.0, 0.0), (0.0, 0.0), 0.17,
+                                                       0.11, 0.5, 2.5)])},
+                              {"A": (-8.0, 0.0, 0.0, 0.0)})
+    cone, _ = merge_trees(cyl, grid, max_taper_m_per_m=None)
+    assert cone["dbh_m"].iloc[0] == pytest.approx(2 * (0.17 - 0.03 * 0.8))
+    limited, _ = merge_trees(cyl, grid)  # slope limited to 1 cm/m about mid height (1.5 m)
+    assert limited["dbh_m"].iloc[0] == pytest.approx(2 * (0.14 + 0.01 * 0.2))
+    # a near scan's cylinder starting 0.8 m above breast height joins a far scan's at 1.3 m
+    near = _cyl(0, (6.0, 0.0, 0.0), (0.0, 0.0), 0.14, 0.14, 2.1, 4.0)
+    far = _cyl(0, (18.0, 0.0, 0.0), (0.0, 0.0), 0.17, 0.17, 0.5, 2.0)
+    both = cylinders_to_global({"N": pd.DataFrame([near]), "F": pd.DataFrame([far])},
+                               {"N": (-6.0, 0.0, 0.0, 0.0), "F": (-18.0, 0.0, 0.0, 0.0)})
+    old, _ = merge_trees(both, grid, dbh_reach_m=0.6)
+    assert old["dbh_m"].iloc[0] == pytest.approx(0.34)  # the far cylinder alone
+    new, _ = merge_trees(both, grid)
+    w = np.array([50, 50]) / (0.042 + 0.003 * np.array([6.0, 18.0])) ** 2
+    assert new["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.14, 0.17], weights=w))

@@ -33,10 +33,10 @@ CODE_VERSIONS: dict[str, str] = {
     "submaps": "1",
     "candidate_pairs": "1",
     "pairwise_registrations": "2",
-    "optimal_map": "1",
+    "optimal_map": "2",
     "residual_checks": "1",
     "integrated_map": "2",
-    "tree_list": "2",
+    "tree_list": "3",
 }
 
 # Which parameter sections each stage reads (their hash enters the code version).

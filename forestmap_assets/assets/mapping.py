@@ -158,7 +158,8 @@ def mapping_assets(campaign: Campaign) -> list:
         else:
             sel = select_links(accepted, reference, scans=campaign.scan_ids, confidence="confidence",
                                covariance=mp.covariance, iterate=mp.iterate,
-                               residual_sigmas=mp.residual_sigmas, z_residual_sigmas=mp.z_residual_sigmas)
+                               residual_sigmas=mp.residual_sigmas, z_residual_sigmas=mp.z_residual_sigmas,
+                               scan_correlation=mp.scan_correlation)
             poses = poses_table(campaign, sel.solution.poses)
             links = sel.links
             residuals = sel.solution.residuals

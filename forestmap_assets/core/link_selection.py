@@ -79,6 +79,7 @@ def check_link_hypothesis(
     residual_sigmas: float = 3.0,
     z_residual_sigmas: float = 8.0,
     check_new_link: bool = True,
+    scan_correlation: float | Sequence[float] = 0.0,
 ) -> LinkVerdict:
     """Test of a new relative observation against the map, Th. 7.1 / spec 8.5.
 
@@ -90,7 +91,9 @@ def check_link_hypothesis(
     ``check_new_link``, the new link's own residual does (beyond the thesis). A link that does
     not close a loop with the baseline (an end not yet placed) is ``untestable``.
     ``iterate`` re-projects to convergence after adding the link (inferred; the thesis solves
-    once).
+    once). ``scan_correlation`` only inflates the solution's pose covariance (see
+    :func:`~forestmap_assets.core.optimal_map.shared_scan_covariance`); the verdict does not
+    depend on it.
     """
     hyp = hypothesis.to_frame().T if isinstance(hypothesis, pd.Series) else hypothesis
     if len(hyp) != 1:
@@ -102,7 +105,8 @@ def check_link_hypothesis(
     if baseline is None:
         baseline = solve_network(obs, scans, covariance=covariance, iterate=True,
                                  residual_sigmas=residual_sigmas,
-                                 z_residual_sigmas=z_residual_sigmas)
+                                 z_residual_sigmas=z_residual_sigmas,
+                                 scan_correlation=scan_correlation)
     placed = set(baseline.poses.loc[baseline.poses["registered"], "scan"])
     if s not in placed or r not in placed:
         missing = ", ".join(x for x in (s, r) if x not in placed)
@@ -113,7 +117,7 @@ def check_link_hypothesis(
     sol = solve_network(extended, scans, headings=baseline.headings(),
                         heading_variances=baseline.heading_variances(), covariance=covariance,
                         iterate=iterate, residual_sigmas=residual_sigmas,
-                        z_residual_sigmas=z_residual_sigmas)
+                        z_residual_sigmas=z_residual_sigmas, scan_correlation=scan_correlation)
     is_new = (sol.projected["observation"] == len(obs)).to_numpy()
     return judge_link(sol.residuals, is_new, s, r, residual_sigmas=residual_sigmas,
                       z_residual_sigmas=z_residual_sigmas, check_new_link=check_new_link,
@@ -213,6 +217,7 @@ def select_links(
     iterate: bool = True,
     residual_sigmas: float = 3.0,
     z_residual_sigmas: float = 8.0,
+    scan_correlation: float | Sequence[float] = 0.0,
 ) -> LinkSelection:
     """Admit registered candidate pairs one at a time, most confident first (beyond the thesis).
 
@@ -226,6 +231,9 @@ def select_links(
        sub-map is reported in ``unregistered`` (not placed).
 
     ``iterate`` solves each map to convergence of the projection headings (inferred).
+    ``scan_correlation`` (rho) gives the final map's pose covariance for observations that
+    share a scan (:func:`~forestmap_assets.core.optimal_map.shared_scan_covariance`); the
+    admission decisions do not depend on it.
     """
     cand = candidates.reset_index(drop=True)
     conf = link_confidence(cand, confidence)
@@ -255,8 +263,10 @@ def select_links(
         n_steps += 1
     placed = {scans[k] for k in np.flatnonzero(on)}
     admitted = np.flatnonzero(status == "admitted")
+    corr = dict(scan_correlation=scan_correlation)
     current = solve_network(cand.iloc[admitted], scans, covariance=covariance, iterate=iterate,
-                            residual_sigmas=residual_sigmas, z_residual_sigmas=z_residual_sigmas)
+                            residual_sigmas=residual_sigmas, z_residual_sigmas=z_residual_sigmas,
+                            **corr)
     for m in rank:  # 2. loop-closing links
         if status[m] != "unreached" or s_all[m] not in placed or r_all[m] not in placed:
             continue
@@ -266,7 +276,7 @@ def select_links(
         verdict = check_link_hypothesis(
             cand.iloc[admitted], cand.iloc[[m]], reference, baseline=current, scans=scans,
             covariance=covariance, iterate=iterate, residual_sigmas=residual_sigmas,
-            z_residual_sigmas=z_residual_sigmas,
+            z_residual_sigmas=z_residual_sigmas, **corr,
         )
         reason[m] = verdict.reason
         if verdict.verdict == "inconsistent":
@@ -279,7 +289,7 @@ def select_links(
                                 heading_variances=current.heading_variances(),
                                 covariance=covariance, iterate=iterate,
                                 residual_sigmas=residual_sigmas,
-                                z_residual_sigmas=z_residual_sigmas)
+                                z_residual_sigmas=z_residual_sigmas, **corr)
     unreached = status == "unreached"
     for m in np.flatnonzero(unreached):  # 3. links of sub-maps the network does not reach
         away = [x for x in (s_all[m], r_all[m]) if x not in placed]

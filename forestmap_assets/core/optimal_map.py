@@ -7,6 +7,15 @@ global heading of its reference sub-map (Eq. 6.1), observes ``x_scan - x_referen
 ``x = (H^T C^-1 H)^-1 H^T C^-1 d`` and ``C_x = (H^T C^-1 H)^-1`` (Eq. 3.20-3.21 / JP (9)-(10)).
 The network is re-solved phase by phase as sub-maps are added in a given order, every phase
 re-projecting all observations with the previous phase's headings (spec 8.4).
+
+Observations that share a scan (beyond the thesis, inferred, :func:`shared_scan_covariance`):
+the block-diagonal ``C`` treats every registration as independent, but two registrations of
+the same scan share that scan's feature errors (stem centres, ground grid), so the poses came
+out over-confident on simulated campaigns (error / sd RMS 1.3-1.7 while the pairs' was 0.6-0.9).
+``scan_correlation`` = rho models each observation error as ``sqrt(1 - 2 rho) v + u_i - u_j``
+with an error ``u_s`` per scan; its covariance is ``(1 - 2 rho) D + B S B^T`` (``B`` the
+incidence matrix, ``S`` per-scan blocks). This keeps the poses and residuals of the thesis's
+solve and inflates ``C_x`` to ``(1 - 2 rho) C_x + K``.
 """
 
 from __future__ import annotations
@@ -34,6 +43,15 @@ from forestmap_assets.core.residuals import residual_arrays, residual_table
 
 Linearisation = Literal["projection", "gauss_newton"]
 
+# Pipeline default of ``scan_correlation`` (x, y, z, heading; the core functions default to 0,
+# the thesis). Estimated (inferred) on simulated campaigns at quarter resolution, seeds 100-104
+# (6 scans, 40 m plots, no prior), as the correlation of the normalised errors of two admitted
+# links sharing one scan, rotated into the global frame and signed by the side the shared scan
+# is on: x 0.28, y 0.25, z 0.15, heading 0.03 (+- 0.07-0.09, 147 link pairs), rounded to 0.05
+# with one value for x and y (a per-scan error has no preferred horizontal direction). Checked,
+# not fitted, on half resolution (benchmarks/results.md, mapping section).
+PIPELINE_SCAN_CORRELATION: tuple[float, float, float, float] = (0.25, 0.25, 0.15, 0.05)
+
 
 @dataclass
 class MapSolution:
@@ -42,10 +60,11 @@ class MapSolution:
     ``poses``: ``scan, x, y, z, heading_deg`` (headings unwrapped, i.e. sums of the observed
     headings as printed in Table 6.8), ``sd_*`` (sqrt of the diagonal of ``C_x``) and
     ``registered``; ``covariance``: ``C_x`` (4N, 4N) in the scan order of ``poses``, block order
-    (x, y, z, heading); ``projected``: the observations used, projected into the global frame
-    (Table 6.7), with ``cov_xy``, ``projection_heading_deg`` and the input row ``observation``;
-    ``residuals``: Eq. (11) per used observation (``residuals.csv`` schema); ``iterations``:
-    projection/solve rounds.
+    (x, y, z, heading; with ``scan_correlation`` the covariance of the correlated-observation
+    model, :func:`shared_scan_covariance`); ``projected``: the observations used, projected
+    into the global frame (Table 6.7), with ``cov_xy``, ``projection_heading_deg`` and the
+    input row ``observation``; ``residuals``: Eq. (11) per used observation (``residuals.csv``
+    schema); ``iterations``: projection/solve rounds.
     """
 
     scans: list[str]
@@ -187,6 +206,64 @@ def solve_linear(
     return x, cov, reg
 
 
+def shared_scan_covariance(
+    cov: np.ndarray,
+    n: int,
+    root: int,
+    i: np.ndarray,
+    j: np.ndarray,
+    c_g: np.ndarray,
+    reg: np.ndarray,
+    scan_correlation: float | Sequence[float],
+) -> np.ndarray:
+    """``C_x`` of the Lu-Milios estimate when observations sharing a scan are correlated.
+
+    Model (beyond the thesis, inferred): the error of observation ``d_ij`` is
+    ``sqrt(1 - 2 rho) v_ij + u_i - u_j``, ``v_ij ~ N(0, C_ij)`` independent and ``u_s`` a per-scan
+    error (the scan's own feature errors, shared by all its registrations) with covariance
+    ``S_s = rho * mean(C_k)`` over the used observations ``k`` touching scan ``s`` (projected
+    blocks ``c_g``). With equal ``C`` an observation keeps its marginal covariance ``C`` and two
+    observations sharing one scan have correlation ``rho`` (sign by the side the scan is on),
+    i.e. ``C_full = (1 - 2 rho) D + B S B^T`` with ``B`` the incidence matrix of all scans.
+    The reference column of ``B`` is ``-H 1`` (rows sum to zero), so ``B S B^T = H K H^T`` with
+    ``K = S_free + 1 S_root 1^T``; for ``C = a D + H K H^T`` the estimate
+    ``(H^T D^-1 H)^-1 H^T D^-1 d`` is still the minimum-variance one (Rao's condition
+    ``A C Z = 0`` for ``H^T Z = 0``), the residuals are unchanged, and its covariance is
+    ``(1 - 2 rho) (H^T D^-1 H)^-1 + K``: what this returns (``cov`` = ``(H^T D^-1 H)^-1``,
+    4n x 4n, root and unregistered rows as given). ``rho = 0`` returns ``cov`` (the thesis);
+    ``rho`` must lie in [0, 0.5]. A sequence gives one rho per component (x, y, z, heading):
+    ``S_s`` is then scaled elementwise by ``sqrt(rho_a rho_b)`` (a Schur product, still PSD) and
+    ``C_x`` by ``sqrt((1 - 2 rho_a) (1 - 2 rho_b))``, exact when the projected blocks are
+    diagonal (the published rule: the four components decouple), first order otherwise.
+    """
+    rho = np.broadcast_to(np.asarray(scan_correlation, dtype=float), (4,))
+    if not np.all((rho >= 0.0) & (rho <= 0.5)):
+        raise ValueError(f"scan_correlation must lie in [0, 0.5], got {scan_correlation}")
+    if not rho.any() or len(i) == 0:
+        return cov
+    use = reg[i] & reg[j]
+    i, j, c_g = i[use], j[use], c_g[use]
+    total = np.zeros((n, 4, 4))
+    count = np.zeros(n)
+    np.add.at(total, i, c_g)
+    np.add.at(total, j, c_g)
+    np.add.at(count, i, 1.0)
+    np.add.at(count, j, 1.0)
+    s = np.sqrt(np.outer(rho, rho)) * total / np.maximum(count, 1.0)[:, None, None]  # S_s
+    free = np.flatnonzero(reg & (np.arange(n) != root))
+    out = cov.copy()
+    if free.size == 0:
+        return out
+    idx = (4 * free[:, None] + np.arange(4)).reshape(-1)
+    k = np.tile(s[root], (free.size, free.size))  # 1 S_root 1^T
+    blocks = (4 * np.arange(free.size)[:, None] + np.arange(4)).reshape(-1)
+    k_diag = scipy.linalg.block_diag(*s[free])
+    k[np.ix_(blocks, blocks)] += k_diag
+    keep = np.sqrt(np.outer(1.0 - 2.0 * rho, 1.0 - 2.0 * rho))
+    out[np.ix_(idx, idx)] = np.tile(keep, (free.size, free.size)) * cov[np.ix_(idx, idx)] + k
+    return out
+
+
 def _rot(phi_deg: np.ndarray) -> np.ndarray:
     """R_z(phi) (M, 2, 2) for headings in degrees."""
     p = np.radians(phi_deg)
@@ -261,6 +338,7 @@ def solve_network(
     residual_sigmas: float = 3.0,
     z_residual_sigmas: float = 8.0,
     linearisation: Linearisation = "projection",
+    scan_correlation: float | Sequence[float] = 0.0,
 ) -> MapSolution:
     """Optimal map of the sub-maps ``scans`` (``scans[0]`` = reference) from ``observations``.
 
@@ -271,6 +349,9 @@ def solve_network(
     less than ``tolerance_deg`` (spec 8.4 item 5, inferred; the thesis projects once per phase).
     ``heading_variances`` (deg^2) feed ``covariance="full"``. Rows whose scans are not all in
     ``scans`` are ignored; sub-maps not connected to the reference are not registered.
+    ``scan_correlation`` (rho, default 0 = the thesis's independent observations) inflates
+    ``C_x`` for errors shared by the observations of one scan (:func:`shared_scan_covariance`;
+    poses and residuals do not change).
     """
     if linearisation not in ("projection", "gauss_newton"):
         raise ValueError(f"linearisation must be 'projection' or 'gauss_newton', "
@@ -291,6 +372,7 @@ def solve_network(
         d[:, 3] = unwrap_headings(d[:, 3], h[i] - h[j])
         dg, cg = project_relative(d, sd, h[j], hv[j], covariance)
         x, cov, reg = solve_linear(n, 0, i, j, dg, cg)
+        cov = shared_scan_covariance(cov, n, 0, i, j, cg, reg, scan_correlation)
         if not iterate or rounds >= max_iterations:
             break
         change = np.nanmax(np.abs(x[reg, 3] - h[reg])) if reg.any() else 0.0
@@ -306,6 +388,7 @@ def solve_network(
         hv = np.where(reg, np.diagonal(cov)[3::4], hv)
         d[:, 3] = unwrap_headings(d[:, 3], h[i] - h[j])
         dg, cg = project_relative(d, sd, h[j], hv[j], covariance)
+        cov = shared_scan_covariance(cov, n, 0, i, j, cg, reg, scan_correlation)  # approx.
     var = np.diagonal(cov).reshape(n, 4)
     poses = pd.DataFrame(x, columns=list(POSE_COLUMNS))
     poses.insert(0, "scan", scans)
@@ -338,6 +421,7 @@ def solve_incremental(
     residual_sigmas: float = 3.0,
     z_residual_sigmas: float = 8.0,
     linearisation: Linearisation = "projection",
+    scan_correlation: float | Sequence[float] = 0.0,
 ) -> OptimalMap:
     """Optimal map re-solved phase by phase as sub-maps are added in ``order`` (spec 8.4).
 
@@ -346,7 +430,8 @@ def solve_incremental(
     heading variances) of the previous phase's solution, the new sub-map's heading chained from
     its links. Returns every phase (Table 6.8/6.9 rows); a single-scan order gives one phase.
     ``linearisation="gauss_newton"`` solves every phase to the maximum-likelihood map instead
-    (beyond the thesis, see :func:`gauss_newton`).
+    (beyond the thesis, see :func:`gauss_newton`); ``scan_correlation`` see
+    :func:`solve_network`.
     """
     order = [str(s) for s in order]
     headings: dict[str, float] = {order[0]: 0.0}
@@ -358,6 +443,7 @@ def solve_incremental(
             covariance=covariance, iterate=iterate, max_iterations=max_iterations,
             tolerance_deg=tolerance_deg, residual_sigmas=residual_sigmas,
             z_residual_sigmas=z_residual_sigmas, linearisation=linearisation,
+            scan_correlation=scan_correlation,
         )
         headings = {**headings, **sol.headings()}
         variances = {**variances, **sol.heading_variances()}

@@ -86,6 +86,25 @@ def match_trees(trees: pd.DataFrame, truth: pd.DataFrame, match_m: float = 0.5) 
     return out
 
 
+def dbh_errors(trees: pd.DataFrame, truth_trees: pd.DataFrame, *, min_scans: int = 2,
+               match_m: float = 0.5) -> dict[str, float]:
+    """DBH RMSE and bias (m) of ``trees`` against the truth: over every matched tree with a DBH
+    (``dbh_rmse_m``, ``dbh_bias_m``) and over those visible from >= ``min_scans`` scans
+    (``dbh_rmse_multi_m``, ``dbh_bias_multi_m``); ``n_dbh``, ``n_dbh_multi`` count them."""
+    matched = match_trees(trees, truth_trees, match_m)
+    both = matched[matched["est_dbh_m"].notna()]
+    err = (both["est_dbh_m"] - both["dbh_m"]).to_numpy(float)
+    multi = (both["n_visible_scans"] >= min_scans).to_numpy()
+
+    def rmse(e):
+        return float(np.sqrt(np.mean(e**2))) if e.size else np.nan
+
+    return {"dbh_rmse_m": rmse(err), "dbh_bias_m": float(err.mean()) if err.size else np.nan,
+            "dbh_rmse_multi_m": rmse(err[multi]),
+            "dbh_bias_multi_m": float(err[multi].mean()) if multi.any() else np.nan,
+            "n_dbh": int(err.size), "n_dbh_multi": int(multi.sum())}
+
+
 def evaluate_campaign(campaign_dir: str | Path, outputs: str | Path | None = None, *, min_scans: int = 2,
                       match_m: float = 0.5) -> Accuracy:
     """Compare ``outputs/`` (poses.csv, trees.csv) with ``truth/`` of a simulated campaign."""
@@ -100,21 +119,18 @@ def evaluate_campaign(campaign_dir: str | Path, outputs: str | Path | None = Non
     matched = match_trees(trees, truth_trees, match_m)
     eligible = matched[matched["n_visible_scans"] >= min_scans]
     found = eligible["est_x"].notna()
-    both = matched[matched["est_dbh_m"].notna()]
-    err = both["est_dbh_m"] - both["dbh_m"]
     pos = matched["dist_m"].dropna()
-    multi = both[both["n_visible_scans"] >= min_scans]
-    err_multi = multi["est_dbh_m"] - multi["dbh_m"]
+    dbh = dbh_errors(trees, truth_trees, min_scans=min_scans, match_m=match_m)
     return Accuracy(
         poses=pe,
         trees=matched,
         detection_rate=float(found.mean()) if len(eligible) else np.nan,
-        dbh_rmse_m=float(np.sqrt(np.mean(err**2))) if len(err) else np.nan,
-        dbh_bias_m=float(err.mean()) if len(err) else np.nan,
+        dbh_rmse_m=dbh["dbh_rmse_m"],
+        dbh_bias_m=dbh["dbh_bias_m"],
         position_rmse_m=float(np.sqrt(np.mean(pos**2))) if len(pos) else np.nan,
         false_trees=int(len(trees) - matched["est_x"].notna().sum()),
-        dbh_rmse_multi_m=float(np.sqrt(np.mean(err_multi**2))) if len(err_multi) else np.nan,
-        dbh_bias_multi_m=float(err_multi.mean()) if len(err_multi) else np.nan,
+        dbh_rmse_multi_m=dbh["dbh_rmse_multi_m"],
+        dbh_bias_multi_m=dbh["dbh_bias_multi_m"],
     )
 
 
