@@ -91,8 +91,8 @@ class RefineSettings:
     max_iterations: int = 100
     normal_k: int = 20
     correlation_m: float = 0.5
-    sd_floor_m: float = 0.008
-    sd_floor_deg: float = 0.02
+    sd_floor_m: float = 0.004
+    sd_floor_deg: float = 0.012
     min_pairs: int = 200
     min_fit_gain: float = 0.0  # relative: the refined fit must be lower by this share
     # point-to-plane: pairs only between surfaces facing the same way (None: no gate), and the
