@@ -152,6 +152,10 @@ class RegistrationParams(_Stage):
     heading_temperature: float | None = 6.0
     ground_min_sd_m: float = 0.002
     feature_z_sd_m: float = 0.15
+    # pairs with no prior: 'bnb' searches the no-prior box (full circle, plot-size xy); 'fourier'
+    # centres the forest box on the Fourier coarse registration of the raw points (men spec 4);
+    # 'bnb' is the default, from benchmarks/results.md "Coarse registration without a prior"
+    no_prior_method: Literal["bnb", "fourier"] = "bnb"
     # candidate pairs (spec 6.4 box; inferred selection rules)
     k_nearest: int = 4
     max_distance_m: float = 30.0
@@ -177,7 +181,7 @@ class MappingParams(_Stage):
 
 def _section_from_config(name: str, config: type) -> type[_Stage]:
     """A parameter section with the fields and defaults of a core settings dataclass, so the
-    exploration stages (Men 2012) are configured like every other stage."""
+    stages of Men 2012 (refinement, exploration) are configured like every other stage."""
     import dataclasses
     import typing
 
@@ -201,6 +205,13 @@ def _exploration_section() -> type[_Stage]:
     return _section_from_config("ExplorationParams", ExplorationConfig)
 
 
+def _refine_section() -> type[_Stage]:
+    from .core.refine import RefineSettings
+
+    return _section_from_config("RefineParams", RefineSettings)
+
+
+RefineParams = _refine_section()  # fine registration on the raw points (men_spec 5; core/refine.py)
 OcclusionParams = _occlusion_section()  # occlusion boundaries (Men 2012 3.3; men_spec 3.1)
 ExplorationParams = _exploration_section()  # grid, coverage, next vantage points (men_spec 7)
 
@@ -217,6 +228,7 @@ class Params(BaseModel):
     elevation: ElevationParams = ElevationParams()
     submaps: SubmapParams = SubmapParams()
     registration: RegistrationParams = RegistrationParams()
+    refine: RefineParams = RefineParams()  # type: ignore[valid-type]
     mapping: MappingParams = MappingParams()
     occlusion: OcclusionParams = OcclusionParams()  # type: ignore[valid-type]
     exploration: ExplorationParams = ExplorationParams()  # type: ignore[valid-type]

@@ -227,7 +227,7 @@ def build_report(
 
     out_dir = Path(out_dir)
     omap = _load("optimal_map", campaign) or {}
-    regs_bundle = _load("pairwise_registrations", campaign) or {}
+    regs_bundle = _load("refined_registrations", campaign) or {}
     residuals = _load("residual_checks", campaign)
     trees = _load("tree_list", campaign)
     integrated = _load("integrated_map", campaign) or {}
@@ -350,10 +350,25 @@ def build_report(
                 "seconds",
                 "status",
                 "reason",
+                "refine_method",
+                "refined",
             )
             if c in regs
         ]
+        add(
+            '<p class="note">Branch-and-bound results (thesis 5.3.3); an accepted pair is refined on '
+            "the raw points (refine_method: HICP with colour, else point-to-plane ICP, Men 2012 "
+            "ch. 5) and its refined pose and sigmas are used (refined = true) when they fit the "
+            "points better.</p>"
+        )
         add(html_table(regs[cols], {"log_score": 1, "seconds": 2, "matched_points": 0}))
+    refinements = regs_bundle.get("refinements")
+    if refinements is not None and len(refinements):
+        add("<details><summary>refinement of each accepted pair</summary>")
+        add(html_table(refinements[[c for c in ("scan", "reference", "method", "used", "reason", "fit_bnb_m",
+                                                 "fit_refined_m", "iterations", "seconds") if c in refinements]],
+                       {"fit_bnb_m": 4, "fit_refined_m": 4, "seconds": 1}))
+        add("</details>")
     if links is not None and len(links) and "status" in links:
         add("<details><summary>how each link entered the optimal map</summary>")
         add(

@@ -94,5 +94,5 @@ def test_adding_a_scan_runs_its_own_per_scan_assets_and_the_campaign_level_only(
     per_scan = {(s, p) for s, p in ran if p is not None}
     assert per_scan == {(s, "R") for s in SCAN_STAGES}
     level = {s for s, p in ran if p is None}
-    assert {"candidate_pairs", "pairwise_registrations", "optimal_map"} <= level <= set(CAMPAIGN_STAGES)
+    assert {"candidate_pairs", "pairwise_registrations", "refined_registrations", "optimal_map"} <= level <= set(CAMPAIGN_STAGES)
     assert status_lines(root, capsys) == {s: "fresh" for s in ALL}

@@ -205,6 +205,10 @@ def filled(tmp_path):
             "hypotheses": pd.DataFrame({"scan": ["S"]}),
         },
     )
+    _store(campaign, "refined_registrations",  # what feeds the map: here no pair was refined
+           {"registrations": regs.assign(refined=False, refine_method=["point_to_plane", ""]),
+            "refinements": pd.DataFrame({"scan": ["S"], "reference": ["T"], "method": ["point_to_plane"],
+                                         "used": ["branch_and_bound"], "reason": ["fit not better"]})})
     residuals = pd.DataFrame(
         {
             "scan": ["S"],

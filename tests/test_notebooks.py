@@ -126,6 +126,7 @@ def test_parameters_notebook_reruns_only_downstream(materialised, monkeypatch):
         "submaps",
         "candidate_pairs",
         "pairwise_registrations",
+        "refined_registrations",
     }
     assert upstream <= kept
     # the variant's optimal map has the same content, so the integrated map was not rebuilt

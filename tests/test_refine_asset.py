@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 from dagster import materialize
 
-from forestmap_assets.assets.common import asset_key
-from forestmap_assets.assets.refine import refine_assets, refine_code_version
+from forestmap_assets.assets.common import asset_key, code_version
+from forestmap_assets.assets.refine import refine_assets
 from forestmap_assets.campaign import load_campaign
 from forestmap_assets.core.geometry import wrap_deg
 from forestmap_assets.core.pair_registrations import EXTRA_COLUMNS, REGISTRATION_COLUMNS
@@ -73,4 +73,4 @@ def test_refined_registrations_asset_uses_hicp_on_colour_scans(tmp_path, _isolat
     assert not bool(rej["refined"]) and rej["dx"] == s.x + offset[0]
     meta = res.asset_materializations_for_node(key.to_python_identifier())[0].metadata
     assert meta["refined"].value == 1 and meta["accepted_pairs"].value == 1
-    assert refine_code_version(campaign).startswith("v1-")
+    assert code_version(campaign, "refined_registrations").startswith("v1-")

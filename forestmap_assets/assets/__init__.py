@@ -25,11 +25,12 @@ from .exploration import exploration_assets
 from .features import feature_assets
 from .ingest import ingest_assets
 from .mapping import mapping_assets
+from .refine import refine_assets
 
 warnings.filterwarnings("ignore", category=BetaWarning)
 warnings.filterwarnings("ignore", category=PreviewWarning)
 
-STAGE_BUILDERS = [ingest_assets, feature_assets, mapping_assets, exploration_assets]
+STAGE_BUILDERS = [ingest_assets, feature_assets, mapping_assets, refine_assets, exploration_assets]
 
 
 def follows_its_inputs(per_scan: AssetSelection | None = None) -> AutomationCondition:

@@ -33,6 +33,7 @@ CODE_VERSIONS: dict[str, str] = {
     "submaps": "1",
     "candidate_pairs": "1",
     "pairwise_registrations": "2",
+    "refined_registrations": "1",
     "optimal_map": "2",
     "residual_checks": "1",
     "integrated_map": "2",
@@ -50,6 +51,7 @@ STAGE_PARAMS: dict[str, tuple[str, ...]] = {
     "submaps": ("submaps",),
     "candidate_pairs": ("registration",),
     "pairwise_registrations": ("registration", "elevation"),
+    "refined_registrations": ("refine",),
     "optimal_map": ("mapping",),
     "residual_checks": ("mapping",),
     "integrated_map": ("elevation",),
@@ -67,6 +69,7 @@ PIPELINE: tuple[tuple[str, str], ...] = (
     ("submaps", "scan"),
     ("candidate_pairs", "campaign"),
     ("pairwise_registrations", "campaign"),
+    ("refined_registrations", "campaign"),  # Men 2012 ch. 5: fine registration on raw points
     ("optimal_map", "campaign"),
     ("residual_checks", "campaign"),
     ("integrated_map", "campaign"),

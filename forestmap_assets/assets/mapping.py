@@ -69,16 +69,21 @@ def mapping_assets(campaign: Campaign) -> list:
     def key(stage: str):
         return asset_key(campaign, stage)
 
+    fourier = params.registration.no_prior_method == "fourier"  # raw points for the coarse step
+
     @asset(
         key=key("candidate_pairs"),
-        ins={"submaps": _all_scans(key("submaps"))},
+        ins={"submaps": _all_scans(key("submaps")),
+             **({"range_images": _all_scans(key("range_images"))} if fourier else {})},
         group_name="registration",
         code_version=code_version(campaign, "candidate_pairs"),
         description="Which sub-map pairs to register and their search boxes: the campaign's "
         "a priori pairs, else pairs of overlapping a priori poses, else every pair with a "
-        "no-prior box (full heading circle, xy box of the scans' reach) (thesis 5.4; spec 6.4).",
+        "no-prior box (full heading circle, xy box of the scans' reach) (thesis 5.4; spec 6.4); "
+        "with registration.no_prior_method 'fourier', no-prior boxes centred on the Fourier coarse "
+        "registration of the raw points (men spec 4).",
     )
-    def candidate_pairs(context, submaps):
+    def candidate_pairs(context, submaps, **raw):  # raw: {"range_images": ...} with fourier
         submaps = submaps or {}
         reg = params.registration
         pairs = [(p.scan, p.reference, p.a_priori, p.search) for p in campaign.pairs] or None
@@ -90,6 +95,14 @@ def mapping_assets(campaign: Campaign) -> list:
             a_priori=a_priori, search=(reg.xy_m, reg.z_m, reg.heading_deg), reach=reach,
             k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
         )
+        if fourier and len(table) and (table["source"] == "no_prior").any():
+            from ..core.fourier import coarse_candidates
+            from ..core.range_image import RangeImage
+
+            images = {sid: RangeImage.from_table(t) for sid, t in (raw.get("range_images") or {}).items()}
+            clouds = {sid: im.xyz[im.valid] for sid, im in images.items()}
+            table = coarse_candidates(table, clouds, search=(reg.xy_m, reg.z_m, reg.heading_deg),
+                                      progress=lambda m: (context.log.info(m), report(m)))
         meta = {"pairs": len(table), "source": str(table["source"].iloc[0]) if len(table) else "none",
                 "table": _md_table(table)}
         return Output(table, metadata=meta, data_version=data_version(table))
@@ -130,7 +143,7 @@ def mapping_assets(campaign: Campaign) -> list:
 
     @asset(
         key=key("optimal_map"),
-        ins={"pairwise_registrations": AssetIn(key=key("pairwise_registrations"))},
+        ins={"refined_registrations": AssetIn(key=key("refined_registrations"))},
         group_name="map",
         code_version=code_version(campaign, "optimal_map"),
         description="Global poses and covariances: links admitted one at a time (most confident "
@@ -138,8 +151,8 @@ def mapping_assets(campaign: Campaign) -> list:
         "minimum-variance estimate (thesis 3.2.2, 6.4, 7.1; spec 8); with mapping.method "
         "'chain', the thesis's incremental chaining with summed variances (6.2; spec 8.3).",
     )
-    def optimal_map(context, pairwise_registrations):
-        regs = pairwise_registrations["registrations"]
+    def optimal_map(context, refined_registrations):
+        regs = refined_registrations["registrations"]  # branch and bound, refined where it fits better
         accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
         mp = params.mapping
         if accepted.empty:  # only the reference scan is placed: it defines the frame

@@ -10,28 +10,16 @@ import numpy as np
 from dagster import AssetIn, MetadataValue, Output, asset
 
 from ..campaign import Campaign
-from .common import asset_key, data_version
-
-CODE_VERSION = "1"
+from ..progress import report
+from .common import asset_key, code_version, data_version
 
 
 def refine_settings(campaign: Campaign):
-    """The campaign's refinement settings: its ``params.refine`` section when the parameter
-    model has one, else the defaults of :class:`~forestmap_assets.core.refine.RefineSettings`."""
+    """The campaign's ``refine`` parameter section as :class:`~..core.refine.RefineSettings`."""
     from ..core.refine import RefineSettings
 
-    section = getattr(campaign.params, "refine", None)
-    if section is None:
-        return RefineSettings()
-    values = section.model_dump() if hasattr(section, "model_dump") else dict(section)
-    fields = RefineSettings.__dataclass_fields__
-    return RefineSettings(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in values.items() if k in fields})
-
-
-def refine_code_version(campaign: Campaign) -> str:
-    from ..core.refine import settings_digest
-
-    return f"v{CODE_VERSION}-{campaign.params.digest('registration')}-{settings_digest(refine_settings(campaign))}"
+    values = campaign.params.refine.model_dump()
+    return RefineSettings(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in values.items()})
 
 
 def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
@@ -60,7 +48,7 @@ def refine_assets(campaign: Campaign) -> list:
             "range_images": AssetIn(key=key("range_images"), metadata={"allow_missing_partitions": True}),
         },
         group_name="registration",
-        code_version=refine_code_version(campaign),
+        code_version=code_version(campaign, "refined_registrations"),
         description="Every accepted branch-and-bound registration refined on the raw levelled "
         "points: hue-assisted ICP (4-D association x, y, z, w*hue; men spec 5) where both scans "
         "have colour, else Open3D point-to-plane ICP; kept inside the branch-and-bound cloud's "
@@ -72,7 +60,7 @@ def refine_assets(campaign: Campaign) -> list:
         needed = set(regs.loc[regs["status"] == "accepted", "scan"]) | set(
             regs.loc[regs["status"] == "accepted", "reference"])
         clouds = {sid: _cloud(tbl) for sid, tbl in (range_images or {}).items() if sid in needed}
-        bundle = refine_registrations(regs, clouds, settings, progress=context.log.info)
+        bundle = refine_registrations(regs, clouds, settings, progress=lambda m: (context.log.info(m), report(m)))
         ref = bundle["refinements"]
         used = ref[ref["used"] == "refined"] if len(ref) else ref
         meta = {

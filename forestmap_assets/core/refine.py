@@ -11,22 +11,27 @@ the two range images:
    ``overlap_margin_m``); the scan (data) is voxel sub-sampled at ``data_voxel_m``, the
    reference (model) at ``model_voxel_m`` (spec 3.2);
 2. **HICP** (:func:`~.hicp.hicp`, 4-DoF, weight ``weight``, isotropic shared scale) where both
-   scans have colour, else **Open3D point-to-plane ICP** polished in 4-DoF
-   (:func:`~.hicp.point_to_plane_4dof`); the association radius is ``radius_m``. Before HICP
-   the median hue difference of spatially paired points is removed (``hue_offset``: cameras'
-   white balance differs between scans, which the thesis's hue invariance ignores); optionally
-   HICP is finished by 4-DoF point-to-plane steps (``plane_polish``);
+   scans have colour, finished by the robust point-to-plane steps below (``plane_polish``);
+   else **robust 4-DoF point-to-plane ICP** (:func:`~.hicp.point_to_plane_4dof`, Gauss-Newton
+   from the branch-and-bound pose, ``plane_iterations`` steps; ``open3d_start`` runs Open3D's
+   6-DoF point-to-plane ICP first); the association radius is ``radius_m``. Pairs are weighted
+   by Tukey's biweight at ``robust_k`` robust sigmas: two scans see different sides of a stem,
+   and plain least squares lets the far side pull the pose by several millimetres (the minimum
+   of the least-squares objective lies 5-11 mm from the truth on the simulated sample;
+   benchmarks/results.md). ``max_normal_angle_deg`` optionally keeps only pairs whose normals
+   (each oriented toward its own scanner) agree. Before HICP the median hue difference of
+   spatially paired points is removed (``hue_offset``: cameras' white balance differs between
+   scans, which the thesis's hue invariance ignores);
 3. the pose is **kept inside the branch-and-bound cloud's box** ``centre +- box_sigmas * sd``
    (projected after every iteration); a result on the box edge is not used;
 4. the fit (mean point-to-plane distance of data points to their nearest model point within
-   ``radius_m``, Eq. 4.9 along the normal, :func:`fit_error`) is measured at the
-   branch-and-bound pose and at the refined pose; the refined
-   pose replaces the branch-and-bound one only when it **improves the fit** by at least
-   ``min_fit_gain`` (relative; on simulated forests a smaller gain did not mean a better pose,
-   benchmarks/results.md);
+   ``radius_m``, Eq. 4.9 along the normal, each distance truncated at the robust cut-off of the
+   branch-and-bound pose, :func:`fit_error`) is measured at the branch-and-bound pose and at
+   the refined pose; the refined pose replaces the branch-and-bound one only when it
+   **improves the fit** by at least ``min_fit_gain`` (relative);
 5. its uncertainty is the point-to-plane Hessian covariance (:func:`~.hicp.icp_covariance`,
    inflated for correlated neighbours over ``correlation_m``), floored at ``sd_floor_m`` and
-   ``sd_floor_deg`` (inferred, calibrated on simulated campaigns, benchmarks/results.md).
+   ``sd_floor_deg``.
 
 All choices are (inferred); they are fields of :class:`RefineSettings`.
 """
@@ -73,7 +78,7 @@ class RefineSettings:
     method: str = "auto"  # auto | hicp | icp | point_to_plane | none
     weight: float = 0.05  # hue weight; 0.05 was best on real data (men spec 5.8, Table 5.3)
     hue_offset: bool = True  # remove the median hue difference between the scans first
-    plane_polish: bool = False  # finish HICP with 4-DoF point-to-plane steps
+    plane_polish: bool = True  # finish HICP with robust 4-DoF point-to-plane steps
     scale: str = "isotropic"
     hue_mode: str = "linear"
     max_range_m: float = 20.0
@@ -86,10 +91,16 @@ class RefineSettings:
     max_iterations: int = 100
     normal_k: int = 20
     correlation_m: float = 0.5
-    sd_floor_m: float = 0.008
-    sd_floor_deg: float = 0.02
+    sd_floor_m: float = 0.004
+    sd_floor_deg: float = 0.012
     min_pairs: int = 200
-    min_fit_gain: float = 0.01  # relative: the refined fit must be at least 1 % lower
+    min_fit_gain: float = 0.0  # relative: the refined fit must be lower by this share
+    # point-to-plane: pairs only between surfaces facing the same way (None: no gate), and the
+    # number of 4-DoF Gauss-Newton steps; Open3D's 6-DoF ICP first only when ``open3d_start``
+    max_normal_angle_deg: float | None = None
+    plane_iterations: int = 30
+    open3d_start: bool = False
+    robust_k: float | None = 4.685  # Tukey's biweight constant (95 % efficiency); None: least squares
 
 
 def _crop(points: np.ndarray, max_range_m: float, z_band) -> np.ndarray:
@@ -101,18 +112,34 @@ def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.all((points >= lo) & (points <= hi), axis=1)
 
 
-def fit_error(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float) -> tuple[float, int]:
+def fit_error(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float,
+              truncate_m: float | None = None) -> tuple[float, int]:
     """Mean point-to-plane distance ``|n . (m - p)|`` of the moved data points to their nearest
     model point within ``radius_m``, and the number of such pairs: Eq. 4.9 with the distance
     along the model normal (inferred: the plain nearest distance is dominated by the sampling and
-    barely changes with a few millimetres of misalignment)."""
+    barely changes with a few millimetres of misalignment). With ``truncate_m`` each distance
+    counts at most that much (a pair of different surfaces, e.g. the two sides of a stem, then
+    weighs as little as in the robust ICP; inferred)."""
     d, idx = tree.query(moved, distance_upper_bound=radius_m)
     ok = np.isfinite(d)
     ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
     if not ok.any():
         return np.nan, 0
     res = np.abs((normals[idx[ok]] * (tree.data[idx[ok]] - moved[ok])).sum(axis=1))
+    if truncate_m is not None:
+        res = np.minimum(res, truncate_m)
     return float(res.mean()), int(ok.sum())
+
+
+def robust_scale(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float) -> float:
+    """1.4826 x the median absolute deviation of the point-to-plane distances (robust sigma)."""
+    d, idx = tree.query(moved, distance_upper_bound=radius_m)
+    ok = np.isfinite(d)
+    ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
+    if not ok.any():
+        return np.nan
+    res = (normals[idx[ok]] * (tree.data[idx[ok]] - moved[ok])).sum(axis=1)
+    return float(1.4826 * np.median(np.abs(res - np.median(res))))
 
 
 def refine_pair(
@@ -161,7 +188,19 @@ def refine_pair(
     if len(data) < s.min_pairs or len(model) < s.min_pairs:
         row["reason"] = "too little overlap of the raw points"
         return row
-    kd = voxel_subsample(data, s.data_voxel_m) if s.data_voxel_m else np.arange(len(data))
+    data_normals = None
+    if s.max_normal_angle_deg is not None and method == "point_to_plane":
+        # data normals from the data at the model's spacing (a stem is too thin for PCA at the
+        # coarse data voxel), each oriented toward the data's own scanner at its origin
+        fine = voxel_subsample(data, s.model_voxel_m) if s.model_voxel_m else np.arange(len(data))
+        fine_normals, _ = pca_normals(data[fine], s.normal_k, origin=(0.0, 0.0, 0.0))
+        data, fine_sel = data[fine], fine
+        if colour:
+            hd = hd[fine_sel]
+        kd = voxel_subsample(data, s.data_voxel_m) if s.data_voxel_m else np.arange(len(data))
+        data_normals = fine_normals[kd]
+    else:
+        kd = voxel_subsample(data, s.data_voxel_m) if s.data_voxel_m else np.arange(len(data))
     km = voxel_subsample(model, s.model_voxel_m) if s.model_voxel_m else np.arange(len(model))
     data, model = data[kd], model[km]
     hd = hd[kd] if colour else None
@@ -170,7 +209,10 @@ def refine_pair(
 
     tree3 = cKDTree(model)
     normals, _ = pca_normals(model, s.normal_k, origin=(0.0, 0.0, 0.0), tree=tree3)
-    fit_b, pairs_b = fit_error(tree3, normals, data @ r0.T + t0v, s.radius_m)
+    # the fit is truncated at the robust ICP's cut-off, measured once at the branch-and-bound pose
+    trunc = (s.robust_k * robust_scale(tree3, normals, data @ r0.T + t0v, s.radius_m)
+             if s.robust_k is not None and (method == "point_to_plane" or s.plane_polish) else None)
+    fit_b, pairs_b = fit_error(tree3, normals, data @ r0.T + t0v, s.radius_m, trunc)
     row.update(fit_bnb_m=fit_b, pairs_bnb=pairs_b)
     half = np.maximum(s.box_sigmas * sd, 1e-9)
     box = (pose, half)
@@ -197,24 +239,30 @@ def refine_pair(
         edge = res.hit_box
         if s.plane_polish:
             new_pose, _, its = point_to_plane_4dof(model, normals, data, new_pose, max_distance_m=s.radius_m,
-                                                   iterations=10, tree=tree3, box=box)
+                                                   iterations=s.plane_iterations, tree=tree3, box=box,
+                                                   robust_k=s.robust_k)
             row["iterations"] = res.iterations + its
             rel = np.abs(np.r_[new_pose[:3] - pose[:3], wrap_deg(new_pose[3] - pose[3])])
             edge = edge or bool(np.any(rel >= half * (1 - 1e-9)))
     else:
-        mat, _, _ = open3d_point_to_plane(model, data, pose, max_distance_m=s.radius_m,
-                                          model_normals=normals, max_iterations=s.max_iterations)
-        start = matrix_to_pose4(mat[:3, :3], mat[:3, 3])
-        start = pose + np.clip(np.r_[start[:3] - pose[:3], wrap_deg(start[3] - pose[3])], -half, half)
+        start = pose
+        if s.open3d_start:
+            mat, _, _ = open3d_point_to_plane(model, data, pose, max_distance_m=s.radius_m,
+                                              model_normals=normals, max_iterations=s.max_iterations)
+            start = matrix_to_pose4(mat[:3, :3], mat[:3, 3])
+            start = pose + np.clip(np.r_[start[:3] - pose[:3], wrap_deg(start[3] - pose[3])], -half, half)
         new_pose, _, its = point_to_plane_4dof(model, normals, data, start, max_distance_m=s.radius_m,
-                                               iterations=10, tree=tree3, box=box)
+                                               iterations=s.plane_iterations, tree=tree3, box=box,
+                                               data_normals=data_normals,
+                                               max_normal_angle_deg=s.max_normal_angle_deg,
+                                               robust_k=s.robust_k)
         row.update(iterations=its, converged=True)
         rel = np.abs(np.r_[new_pose[:3] - pose[:3], wrap_deg(new_pose[3] - pose[3])])
         edge = bool(np.any(rel >= half * (1 - 1e-9)))
     new_pose[3] = wrap_deg(new_pose[3])
     r1, t1 = pose4_to_matrix(new_pose)
     moved = data @ r1.T + t1
-    fit_r, pairs_r = fit_error(tree3, normals, moved, s.radius_m)
+    fit_r, pairs_r = fit_error(tree3, normals, moved, s.radius_m, trunc)
     dist, idx = tree3.query(moved, distance_upper_bound=s.radius_m)
     ok = np.isfinite(dist)
     cov = icp_covariance(moved[ok], model[idx[ok]], t1, normals=normals[idx[ok]], dof=4,

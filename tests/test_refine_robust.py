@@ -1,0 +1,52 @@
+"""The robust 4-DoF point-to-plane step of the refinement (core/hicp.point_to_plane_4dof with
+``robust_k``): pairs of different surfaces within the association radius (the far side of a
+stem, seen only by the other scan) bias least squares but not Tukey's biweight."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from forestmap_assets.core.cloud import pca_normals
+from forestmap_assets.core.geometry import wrap_deg
+from forestmap_assets.core.hicp import point_to_plane_4dof, pose4_to_matrix
+
+
+def _scene(rng, n=3000):
+    """Ground plane and six vertical walls of different orientations, 1 mm noise."""
+    parts = [np.column_stack([rng.uniform(-6, 6, n), rng.uniform(-6, 6, n), rng.normal(0, 0.001, n)])]
+    for k in range(6):
+        a = np.radians(30 * k + 7)
+        u, v = rng.uniform(-1.5, 1.5, n // 3), rng.uniform(0.1, 2.0, n // 3)
+        c = 4.0 * np.array([np.cos(a + 1), np.sin(a + 1)])
+        xy = c + u[:, None] * np.array([np.cos(a), np.sin(a)])
+        xy += rng.normal(0, 0.001, (len(u), 1)) * np.array([-np.sin(a), np.cos(a)])
+        parts.append(np.column_stack([xy, v]))
+    return np.vstack(parts)
+
+
+def _run(robust_k):
+    rng = np.random.default_rng(4)
+    model = _scene(rng)
+    truth = np.array([0.3, -0.2, 0.05, 4.0])  # data -> model
+    r, t = pose4_to_matrix(truth)
+    world = _scene(rng)
+    # a far-side surface 6 cm behind each wall's points on one side only (seen by the data scan
+    # alone): within the 0.2 m association radius, always pulling the same way
+    walls = world[:, 2] > 0.05
+    extra = world[walls][::3] + np.array([0.06, 0.03, 0.0])
+    world = np.vstack([world, extra])
+    data = (world - t) @ r  # inverse transform: model = R data + t
+    normals, _ = pca_normals(model, 20, origin=(0.0, 0.0, 1.0))
+    tree = cKDTree(model)
+    start = truth + np.array([0.01, -0.01, 0.005, 0.05])
+    pose, _, _ = point_to_plane_4dof(model, normals, data, start, max_distance_m=0.2, iterations=30,
+                                     tree=tree, robust_k=robust_k)
+    return np.hypot(*(pose[:2] - truth[:2])), abs(wrap_deg(pose[3] - truth[3]))
+
+
+def test_tukey_weights_resist_pairs_of_a_different_surface():
+    exy_ls, _ = _run(None)
+    exy_rb, eh_rb = _run(4.685)
+    assert exy_ls > 0.005  # least squares is pulled toward the far-side points
+    assert exy_rb < 0.001 and eh_rb < 0.01, (exy_rb, eh_rb)
