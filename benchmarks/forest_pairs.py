@@ -3,7 +3,7 @@
 Used by ``bench_registration.py``. For a campaign written by ``forestmap simulate`` it computes
 each scan's sub-map with the pipeline's own core functions (range image -> segments -> circle
 models -> cylinder segments -> submap, the chain of the ``submaps`` asset), caches them in
-``<campaign>/bench_submaps.npz``, and lists every scan pair with its true relative pose (location
+``<campaign>/bench_submaps.parquet``, and lists every scan pair with its true relative pose (location
 of ``scan`` in the levelled frame of ``reference``, spec 6.1) and the number of stems visible in
 both scans (truth labels, same rule as ``sim.campaign.visible_trees``).
 """
@@ -17,19 +17,25 @@ import pandas as pd
 
 from forestmap_assets.core.geometry import relative_pose
 
+# circle-model options the circle_models asset passes from CircleParams (assets/features.py)
+CIRCLE_OPTIONS = ("fit", "symmetry_statistic", "stable_centre_m", "stable_radius_m",
+                  "stable_normal_deg", "stable_share", "max_batch_points", "engine")
 
-def campaign_submaps(folder: Path, progress=print) -> dict[str, np.ndarray]:
-    """Sub-map points (n, 3) per scan id, computed once and cached next to the campaign."""
+
+def campaign_submap_tables(folder: Path, progress=print) -> dict[str, pd.DataFrame]:
+    """Sub-map tables (``x, y, z, feature, feature_id``, the ``submaps`` asset's) per scan id,
+    computed once with the pipeline's core functions and cached next to the campaign."""
     folder = Path(folder)
-    cache = folder / "bench_submaps.npz"
+    cache = folder / "bench_submaps.parquet"
     if cache.exists():
-        with np.load(cache) as z:
-            return {k: z[k] for k in z.files}
+        table = pd.read_parquet(cache)
+        return {str(s): g.drop(columns="scan").reset_index(drop=True)
+                for s, g in table.groupby("scan", sort=True)}
     from forestmap_assets.campaign import load_campaign
     from forestmap_assets.core.circles import fit_circle_models
     from forestmap_assets.core.cylinders import assemble_cylinders
     from forestmap_assets.core.segments import segment_scan_lines
-    from forestmap_assets.core.submaps import build_submap, submap_points
+    from forestmap_assets.core.submaps import build_submap
     from forestmap_assets.io.readers import read_scan
 
     camp = load_campaign(folder)
@@ -37,14 +43,25 @@ def campaign_submaps(folder: Path, progress=print) -> dict[str, np.ndarray]:
     out = {}
     for entry in camp.scans:
         image = read_scan(entry.path, angular_step_deg=camp.angular_step_deg, tilt_deg=entry.tilt_deg)
-        seg = segment_scan_lines(image, p.segmentation)
-        circ = fit_circle_models(image, seg, p.circles, p.segmentation)
+        # the calls of the segments, circle_models, cylinder_segments and submaps assets
+        seg = segment_scan_lines(image, p.segmentation,
+                                 max_window_px=p.segmentation.max_window_px)
+        cp = p.circles
+        circ = fit_circle_models(image, seg, cp, p.segmentation,
+                                 **{k: getattr(cp, k) for k in CIRCLE_OPTIONS})
         final = circ[circ["iteration"] == circ["iteration"].max()] if len(circ) else circ
-        cyl = assemble_cylinders(final, p.cylinders)
-        out[entry.id] = submap_points(build_submap(cyl, None, p.submaps.spacing_m))
+        cyl = assemble_cylinders(final, p.cylinders, reference=p.cylinders.curvature_reference)
+        out[entry.id] = build_submap(cyl, None, p.submaps.spacing_m)
         progress(f"  {folder.name}/{entry.id}: {len(cyl)} cylinders, {len(out[entry.id])} points")
-    np.savez(cache, **out)
+    pd.concat([t.assign(scan=s) for s, t in out.items()], ignore_index=True).to_parquet(cache)
     return out
+
+
+def campaign_submaps(folder: Path, progress=print) -> dict[str, np.ndarray]:
+    """Sub-map points (n, 3) per scan id (:func:`campaign_submap_tables`)."""
+    from forestmap_assets.core.submaps import submap_points
+
+    return {s: submap_points(t) for s, t in campaign_submap_tables(folder, progress).items()}
 
 
 def visible_stems(folder: Path, scan_id: str, pose, max_range_m: float = 20.0,
@@ -96,11 +113,12 @@ def stems_in_scan_frame(folder: Path, scan_id: str) -> pd.DataFrame:
     return pd.DataFrame({"tree_id": stems["tree_id"], "x": c * dx + s * dy, "y": -s * dx + c * dy})
 
 
-def sector_crop(folder: Path, scan: str, reference: str, points: np.ndarray, width_deg: float = 50.0,
+def sector_crop(folder: Path, scan: str, reference: str, points, width_deg: float = 50.0,
                 max_range_m: float = 15.0, shared_range=(1, 4), min_points: int = 150):
     """A low-overlap variant of a pair: ``scan``'s sub-map points within an azimuth sector of
     ``width_deg`` (and ``max_range_m``) chosen so that it holds ``shared_range`` of the stems
-    visible in both scans. Returns (points, shared stems in the sector) or None."""
+    visible in both scans. ``points``: (n, 3) array or sub-map table. Returns (the same type
+    cropped, shared stems in the sector) or None."""
     folder = Path(folder)
     poses = pd.read_csv(folder / "truth" / "poses.csv").set_index("scan")
     shared = (visible_stems(folder, scan, poses.loc[scan].to_numpy(float))
@@ -109,8 +127,9 @@ def sector_crop(folder: Path, scan: str, reference: str, points: np.ndarray, wid
     st = st[st.tree_id.isin(shared)]
     az_st = np.degrees(np.arctan2(st.y, st.x))
     r_st = np.hypot(st.x, st.y)
-    az_p = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
-    r_p = np.hypot(points[:, 0], points[:, 1])
+    xyz = points[["x", "y", "z"]].to_numpy(float) if isinstance(points, pd.DataFrame) else points
+    az_p = np.degrees(np.arctan2(xyz[:, 1], xyz[:, 0]))
+    r_p = np.hypot(xyz[:, 0], xyz[:, 1])
     for centre in np.arange(-180.0, 180.0, 10.0):
         in_st = (np.abs((az_st - centre + 180) % 360 - 180) <= width_deg / 2) & (r_st <= max_range_m)
         k = int(in_st.sum())
@@ -118,5 +137,32 @@ def sector_crop(folder: Path, scan: str, reference: str, points: np.ndarray, wid
             continue
         sel = (np.abs((az_p - centre + 180) % 360 - 180) <= width_deg / 2) & (r_p <= max_range_m)
         if sel.sum() >= min_points:
-            return points[sel], k
+            return (points[sel].reset_index(drop=True) if isinstance(points, pd.DataFrame)
+                    else points[sel]), k
     return None
+
+
+def campaign_elevation(folder: Path, progress=print) -> dict[str, pd.DataFrame]:
+    """Lowest-hit elevation grid (``ix, iy, z, n``) per scan id, as the ``elevation_maps`` asset
+    computes it (:func:`~forestmap_assets.core.elevation.elevation_grid` of the levelled range
+    image with the campaign's elevation parameters), cached next to the campaign."""
+    folder = Path(folder)
+    cache = folder / "bench_elevation.npz"
+    cols = ("ix", "iy", "z", "n")
+    if cache.exists():
+        with np.load(cache) as z:
+            ids = sorted({k.split("/")[0] for k in z.files})
+            return {s: pd.DataFrame({c: z[f"{s}/{c}"] for c in cols}) for s in ids}
+    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.core.elevation import elevation_grid
+    from forestmap_assets.io.readers import read_scan
+
+    camp = load_campaign(folder)
+    ep = camp.params.elevation
+    out = {}
+    for entry in camp.scans:
+        image = read_scan(entry.path, angular_step_deg=camp.angular_step_deg, tilt_deg=entry.tilt_deg)
+        out[entry.id] = elevation_grid(image, ep, max_distance_m=ep.max_distance_m)
+        progress(f"  {folder.name}/{entry.id}: {len(out[entry.id])} elevation cells")
+    np.savez(cache, **{f"{s}/{c}": t[c].to_numpy() for s, t in out.items() for c in cols})
+    return out

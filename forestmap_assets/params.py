@@ -142,6 +142,11 @@ class RegistrationParams(_Stage):
     max_rival_ratio: float | None = None
     rival_exclusion_m: float = 1.0
     max_cells: int = 60_000  # a level keeping more cells than this is reported as ambiguous
+    # (inferred, opt-in) 'lattice': bound each cell over the final-lattice poses inside it (half the
+    # CPU, same peak; its cloud keeps cells within lattice_margin log units of the best, so the
+    # sigmas are not yet calibrated for it); 'cell': the rigorous continuous bound of spec 6.4
+    bound: Literal["cell", "lattice"] = "cell"
+    lattice_margin: float = 10.0
     min_matched_stems: int = 4  # (inferred) distinct features supporting an accepted result
     # (beyond the thesis, its spec 9 "future source"): dz of accepted pairs from the ground grids
     z_from_ground: bool = True

@@ -78,12 +78,20 @@ def test_branch_and_bound_equals_exhaustive(kind):
     box = (0.2, 0.2, 0.1, 10.0) if kind != "symmetric" else (0.2, 0.2, 0.1, 100.0)
     centre = (0.0, 0.0, 0.0, 0.0)
     poses, scores = exhaustive_search(scan, ref, centre, box, params)
-    for method in ("fast", "thesis"):
-        r = register_pair(scan, ref, centre, box, params, method=method)
+    for method, bound in (("fast", "cell"), ("thesis", "cell"), ("fast", "lattice")):
+        r = register_pair(scan, ref, centre, box, params, method=method, bound=bound)
         assert r.ok
         assert np.isclose(r.peak_score, scores.max(), rtol=1e-10, atol=1e-9)
         winners = poses[scores >= scores.max() - 1e-6]
         assert np.min(np.abs(winners - np.array(r.peak)).sum(1)) < 1e-6
+        if bound == "lattice":  # every lattice pose scoring within the margin survives
+            near = poses[scores >= scores.max() - 10.0]
+            last = r.levels[r.levels.level == r.levels.level.max()]
+            got = last[["dx", "dy", "dz", "dh_deg"]].to_numpy()
+            for q in near:
+                d = np.abs(got - q)
+                d[:, 3] = np.minimum(d[:, 3], 360 - d[:, 3])
+                assert d.sum(1).min() < 1e-6
 
 
 def _stem_points(seed, **kw):
@@ -215,3 +223,46 @@ def test_fast_search_corridor_pair_has_a_result():
     r = register_pair(d["scan"], d["ref"], tuple(d["centre"]), tuple(d["half"]), reg)
     assert r.status == "ok"
     assert r.cloud_cells > 0 and np.isfinite(r.peak_score)
+
+
+def test_field_gives_exact_nearest_distances_on_voxel_faces():
+    """The voxel candidate lists give the k-d tree's exact scores, also for queries on voxel
+    faces and corners; the live-point evaluation's quick score is a lower bound of the exact
+    score and its bound dominates it."""
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(-2, 2, (400, 3))
+    model = ScoreModel()
+    field = ReferenceField(ref, model)
+    kd = _KdEvaluator(ref, model)
+    lo = field.f_origin + field.f_s * np.floor((ref.min(0) - field.f_origin) / field.f_s)
+    grid = lo + field.f_s * rng.integers(0, 40, (500, 3))  # voxel corners
+    face = grid + np.array([0.5, 0.0, 0.5]) * field.f_s  # and faces
+    scan = np.vstack([grid, face, rng.uniform(-2.2, 2.2, (500, 3))])
+    s_fast, _ = field.evaluate(np.zeros((1, 4)), scan, bound=False)
+    s_kd, _ = kd(np.zeros((1, 4)), scan, np.zeros(len(scan)), bound=False)
+    np.testing.assert_allclose(s_fast, s_kd, rtol=1e-12)
+    d_xy = np.hypot(scan[:, 0], scan[:, 1])
+    n = len(scan)
+    for e in ([0.01, 0.01, 0.01, 0.001], [0.05, 0.02, 0.03, 0.004], [0.12, 0.12, 0.12, 0.01]):
+        e = np.array(e)
+        poses = rng.normal(0, 0.02, (5, 4))
+        b, s, *_ = field.eval_live(poses, np.zeros(5, np.int64), np.array([0, n], np.int64),
+                                   np.arange(n, dtype=np.int32), scan, d_xy, e, True)
+        delta = np.linalg.norm(e[:3]) + 2 * d_xy * np.sin(e[3] / 2)
+        s_kd, _ = kd(poses, scan, delta, bound=False)
+        assert np.all(s <= s_kd + 1e-9) and np.all(s >= s_kd - 0.01 * n)  # quick score: table
+        assert np.all(b >= s_kd - 1e-9)  # the bound dominates the score at the cell's pose
+
+
+def test_reference_field_is_reused_for_the_same_reference():
+    from forestmap_assets.core.registration import reference_field
+
+    rng = np.random.default_rng(4)
+    ref = rng.uniform(-2, 2, (200, 3))
+    model = ScoreModel()
+    a = reference_field(ref, model)
+    assert reference_field(ref.copy(), model) is a
+    moved = ref.copy()
+    moved[0, 0] += 1e-6
+    assert reference_field(moved, model) is not a
+    assert reference_field(ref, ScoreModel(sigma_m=0.05)) is not a

@@ -184,7 +184,10 @@ def _register_one(args):
                              method=params.method, weight=params.weight,
                              s_floor=params.s_floor, adjacency=params.adjacency,
                              hypothesis_separation_m=params.hypothesis_separation_m,
-                             max_cells=params.max_cells)
+                             max_cells=params.max_cells,
+                             # proposed RegistrationParams fields (issue 4); defaults until added
+                             bound=getattr(params, "bound", "cell"),
+                             lattice_margin=getattr(params, "lattice_margin", 10.0))
     result.seconds = time.perf_counter() - t0
     return result
 
