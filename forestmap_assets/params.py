@@ -116,6 +116,9 @@ class SubmapParams(_Stage):
     """Registration points along feature centre lines, spec 6.2 (Delta_d)."""
 
     spacing_m: float = 0.05
+    # (inferred, issue 10) cylinders sampled cylinder_weight x as densely as wall lines
+    # (core/submaps.py): a pillar point fixes both horizontal directions, a line point one
+    cylinder_weight: int = 1
 
 
 class RegistrationParams(_Stage):
@@ -258,12 +261,14 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     },
     "outdoor": {
         "circles": {"symmetry_threshold_m": 0.0041},
+        "submaps": {"cylinder_weight": 2},
         "cylinders": {"min_length_m": 0.3, "curvature_deg": 10.0},
         "registration": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156,
                          "min_matched_stems": 3, "max_rival_ratio": 0.6},
     },
     "indoor": {
         "segmentation": {"min_width_m": 0.2},
+        "submaps": {"cylinder_weight": 2},
         # (inferred) with 2.5 cm range noise the linear fit's mean signed residual is biased by
         # sigma^2/(2r) = 1.6 mm on a 0.192 m pillar, above the 0.7 mm threshold: the "mean"
         # statistic rejects every simulated pillar (benchmarks/results.md, "Structured sites")

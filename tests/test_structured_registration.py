@@ -45,10 +45,12 @@ CEILING_Z, FLOOR_Z, CART_Z = 2.3, 0.0, 1.3
 METHOD = "thesis"
 
 
-def _submap(origin, *, lines=(), pillars=(), max_range_m=None, heading_deg=0.0, seed=0):
+def _submap(origin, *, lines=(), pillars=(), max_range_m=None, heading_deg=0.0, seed=0,
+            cylinder_weight=1):
     """Sub-map of a scan at ``origin`` (world xy) from world features: wall/ceiling lines
-    (x0, y0, x1, y1) at the ceiling and floor-to-ceiling pillars (x, y), sampled every 0.05 m,
-    points beyond ``max_range_m`` dropped, 5 mm of noise (inferred model of extracted features)."""
+    (x0, y0, x1, y1) at the ceiling and floor-to-ceiling pillars (x, y), sampled every 0.05 m
+    (pillars every 0.05 / ``cylinder_weight`` m), points beyond ``max_range_m`` dropped, 5 mm of
+    noise (inferred model of extracted features)."""
     o = np.array([origin[0], origin[1], CART_Z])
     lt = pd.DataFrame([(k, x0, y0, CEILING_Z, x1, y1, CEILING_Z) for k, (x0, y0, x1, y1)
                        in enumerate(lines)], columns=["line_id", "x0", "y0", "z0", "x1", "y1", "z1"])
@@ -59,7 +61,7 @@ def _submap(origin, *, lines=(), pillars=(), max_range_m=None, heading_deg=0.0, 
         ct = lines_in_frame(ct, o, heading_deg)
     else:
         ct = None
-    sub = build_submap(ct, lt, 0.05)
+    sub = build_submap(ct, lt, 0.05, cylinder_weight)
     if max_range_m is not None:
         sub = sub[np.hypot(sub["x"], sub["y"]) <= max_range_m].reset_index(drop=True)
     rng = np.random.default_rng(seed)
@@ -112,9 +114,37 @@ def test_constraint_support_of_parallel_lines_pillars_and_corners():
     with_pillar = _submap((0, 0), lines=walls, pillars=[(2.0, 0.6)])
     assert constraint_support(with_pillar, with_pillar, (0, 0, 0, 0))["support_m"] == (
         pytest.approx(2.35, abs=0.1))  # a 2.3 m pillar fixes every horizontal direction
+    dense = _submap((0, 0), lines=walls, pillars=[(2.0, 0.6)], cylinder_weight=2)
+    assert constraint_support(dense, dense, (0, 0, 0, 0))["support_m"] == pytest.approx(
+        2.35, abs=0.1)  # metres of feature, whatever the sampling density
     corner = _submap((0, 0), lines=walls + [(5, -1.5, 5, 1.5)])
     assert constraint_support(corner, corner, (0, 0, 0, 0))["support_m"] == pytest.approx(
         3.0, abs=0.1)  # the end wall fixes x
+
+
+# ---- range-limited wall lines pull the scans together (issue 10) -------------------------------
+def test_range_limited_wall_line_slides_the_scans_together_unless_pillars_weigh_double():
+    """Both scans detect the same straight wall only within 7.5 m, so sliding scan B 5 m towards
+    A along the wall adds 5 m of line overlap, which outweighs the two shared pillars at the
+    thesis's sampling (the corridor's consecutive pairs 3-2, 6-5 ... in benchmarks/results.md).
+    Pillars sampled twice as densely (``cylinder_weight=2``, the point-to-point vs point-to-line
+    information ratio) keep the true alignment."""
+    wall = [(-30.0, 1.5, 30.0, 1.5)]
+    pillars = [(7.0 * j, -1.2) for j in range(-4, 5)]
+    truth = (6.0, 0.0, 0.0, 0.0)
+    found = {}
+    for k in (1, 2):
+        a = _submap((0, 0), lines=wall, pillars=pillars, max_range_m=7.5, seed=1,
+                    cylinder_weight=k)
+        b = _submap((6, 0), lines=wall, pillars=pillars, max_range_m=7.5, seed=2,
+                    cylinder_weight=k)
+        found[k] = _register(b, a, truth)
+    res1, status1, _ = found[1]
+    assert res1.peak[0] == pytest.approx(1.0, abs=0.1)  # slid 5 m along the wall (box edge)
+    assert status1 == "rejected"  # the pillars no longer match: not admitted
+    res2, status2, _ = found[2]
+    assert abs(res2.peak[0] - 6.0) < 0.05 and abs(res2.peak[1]) < 0.05
+    assert abs(res2.peak[3]) < 0.3 and status2 == "accepted"
 
 
 # ---- pair 87: only parallel walls in common ----------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from forestmap_assets.core.submaps import build_submap, sample_segments, submap_reach
 
@@ -30,6 +31,22 @@ def test_points_every_spacing_along_centre_lines():
     ln = sm[sm.feature == "line"]
     assert len(ln) == 41 and (ln.feature_id == 3).all() and np.allclose(ln.z, 2.0)
     assert submap_reach(sm) == np.hypot(1.0, 2.0)
+
+
+def test_cylinder_weight_samples_cylinders_more_densely_and_lines_unchanged():
+    cyl = _cyl([[7, 1.0, 2.0, 0.0, 1.0, 2.0, 1.0]])
+    lines = pd.DataFrame([[3, 0.0, 0.0, 2.0, 2.0, 0.0, 2.0]],
+                         columns=["line_id", "x0", "y0", "z0", "x1", "y1", "z1"])
+    base = build_submap(cyl, lines, spacing_m=0.05)
+    sm = build_submap(cyl, lines, spacing_m=0.05, cylinder_weight=3)
+    c7 = sm[sm.feature == "cylinder"]
+    assert len(c7) == 61  # 1 m every 0.05/3 m, both ends: weight 3 per metre
+    np.testing.assert_allclose(np.diff(c7.z.to_numpy()), 0.05 / 3)
+    pd.testing.assert_frame_equal(sm[sm.feature == "line"].reset_index(drop=True),
+                                  base[base.feature == "line"].reset_index(drop=True))
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError):
+            build_submap(cyl, lines, cylinder_weight=bad)
 
 
 def test_empty_inputs_give_well_formed_table():

@@ -177,7 +177,8 @@ def feature_assets(campaign: Campaign) -> list:
         "wall lines, levelled scan frame (thesis 5.4; spec 6.2).",
     )
     def submaps(context, cylinder_segments, line_segments):
-        table = build_submap(cylinder_segments, line_segments, params.submaps.spacing_m)
+        table = build_submap(cylinder_segments, line_segments, params.submaps.spacing_m,
+                             params.submaps.cylinder_weight)
         meta = {"points": len(table)}
         if len(table):
             meta["mean_horizontal_distance_m"] = round(float(np.hypot(table["x"], table["y"]).mean()), 2)

@@ -50,10 +50,19 @@ def feature_directions(submap: pd.DataFrame) -> np.ndarray:
     """Unit direction (n, 3) of the feature each sub-map point was sampled from: the principal
     direction of that feature's points (``feature``, ``feature_id`` groups; spec 6.2). Points of
     a one-point feature get the vertical."""
+    return _feature_geometry(submap, 0.05)[0]
+
+
+def _feature_geometry(submap: pd.DataFrame, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per sub-map point: its feature's unit direction (:func:`feature_directions`) and the
+    feature length each point stands for (sampled extent / (points - 1); ``spacing_m`` for a
+    one-point feature), so that support is in metres of feature whatever the sampling density
+    (``build_submap(cylinder_weight=...)``)."""
     pts = submap[["x", "y", "z"]].to_numpy(float)
     out = np.tile([0.0, 0.0, 1.0], (len(submap), 1))
+    metres = np.full(len(submap), float(spacing_m))
     if not len(submap):
-        return out
+        return out, metres
     key = pd.factorize(pd.MultiIndex.from_arrays(
         [submap["feature"].astype(str), submap["feature_id"].astype(np.int64)]))[0]
     order = np.argsort(key, kind="stable")
@@ -66,7 +75,10 @@ def feature_directions(submap: pd.DataFrame) -> np.ndarray:
     n = np.linalg.norm(d, axis=1)
     u = np.where(n[:, None] > 1e-9, d / np.maximum(n, 1e-12)[:, None], [0.0, 0.0, 1.0])
     out[order] = np.repeat(u, ends - starts, axis=0)
-    return out
+    count = ends - starts
+    per = np.where(count > 1, n / np.maximum(count - 1, 1), spacing_m)
+    metres[order] = np.repeat(per, count)
+    return out, metres
 
 
 def constraint_support(scan_submap: pd.DataFrame, ref_submap: pd.DataFrame, pose,
@@ -74,7 +86,8 @@ def constraint_support(scan_submap: pd.DataFrame, ref_submap: pd.DataFrame, pose
     """How well the features matched at ``pose`` (scan in the reference frame) fix the
     horizontal translation: ``support_m`` (weakest direction, metres of matched feature),
     ``strong_m``, ``weak_direction_deg`` (reference frame) and ``matched`` (points within
-    ``match_m``; inferred ~3 sigma)."""
+    ``match_m``; inferred ~3 sigma). Each matched point counts the length of scan feature it
+    was sampled for (``spacing_m`` only for one-point features)."""
     out = {"support_m": 0.0, "strong_m": 0.0, "weak_direction_deg": np.nan, "matched": 0}
     if not len(scan_submap) or not len(ref_submap):
         return out
@@ -84,10 +97,12 @@ def constraint_support(scan_submap: pd.DataFrame, ref_submap: pd.DataFrame, pose
     m = np.isfinite(d)
     if not m.any():
         return out
+    metres = _feature_geometry(scan_submap, spacing_m)[1]
     u = feature_directions(ref_submap)[j[m]]
-    info = np.eye(2) * m.sum() - np.einsum("ni,nj->ij", u[:, :2], u[:, :2])
+    wt = metres[m]  # metres of the scan's feature each matched point stands for
+    info = np.eye(2) * wt.sum() - np.einsum("n,ni,nj->ij", wt, u[:, :2], u[:, :2])
     w, v = np.linalg.eigh(info)
-    out.update(support_m=float(w[0] * spacing_m), strong_m=float(w[1] * spacing_m),
+    out.update(support_m=float(w[0]), strong_m=float(w[1]),
                weak_direction_deg=float(np.degrees(np.arctan2(v[1, 0], v[0, 0]))),
                matched=int(m.sum()))
     return out

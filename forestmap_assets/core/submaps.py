@@ -3,6 +3,17 @@
 A sub-map's registration points are sampled every ``spacing_m`` (Delta_d = 0.05 m) along each
 cylinder segment's centre line and each wall line, in the levelled scan frame. Radii are not used.
 The sampling mismatch between two sub-maps is uniform within +-Delta_d/2 (eps_d = Delta_d/sqrt(12)).
+
+Feature weighting (inferred, issue 10): Olson's score is a sum over points, so a feature counts
+as much as its sampled length. A wall line fixes only its normal (and the heading); its extent
+along the wall is where the scanner happened to detect it (line recall falls with range), so
+two sub-maps' collinear lines overlap *more* when the scans are slid towards each other along
+the wall, and on a corridor this overlap outvotes the pillars that fix the along-wall position
+(benchmarks/results.md, "Structured sites"). ``cylinder_weight`` k samples cylinder centre lines
+k times as densely (every Delta_d / k), i.e. weight k per metre of cylinder: k = 2 counts a
+vertical cylinder's point-to-point match (two horizontal coordinates) against a line's
+point-to-line match (one) by their Fisher information (2 vs 1 per point, isotropic sigma).
+k = 1 is the thesis.
 """
 
 from __future__ import annotations
@@ -51,16 +62,25 @@ def sample_segments(p0: np.ndarray, p1: np.ndarray, spacing_m: float) -> tuple[n
 
 
 def build_submap(
-    cylinders: pd.DataFrame | None, lines: pd.DataFrame | None, spacing_m: float = 0.05
+    cylinders: pd.DataFrame | None,
+    lines: pd.DataFrame | None,
+    spacing_m: float = 0.05,
+    cylinder_weight: int = 1,
 ) -> pd.DataFrame:
     """Registration points of one sub-map (spec 6.2): every ``spacing_m`` along each cylinder
     segment's centre line (``x0..z1``, bottom to top) and each wall line, levelled scan frame.
+    Cylinders are sampled every ``spacing_m / cylinder_weight`` (module docstring, inferred;
+    1 = the thesis).
 
     Columns ``x, y, z, feature`` ('cylinder' | 'line'), ``feature_id`` (the cylinder_id or
     line_id). Empty or missing inputs give an empty, well-formed table.
     """
+    k = int(cylinder_weight)
+    if k < 1 or k != cylinder_weight:
+        raise ValueError(f"cylinder_weight: must be a positive integer, got {cylinder_weight}")
     parts = []
-    for table, kind, id_col in ((cylinders, "cylinder", "cylinder_id"), (lines, "line", "line_id")):
+    for table, kind, id_col, step in ((cylinders, "cylinder", "cylinder_id", spacing_m / k),
+                                      (lines, "line", "line_id", spacing_m)):
         if table is None or len(table) == 0:
             continue
         p0 = table[["x0", "y0", "z0"]].to_numpy(dtype=float)
@@ -70,7 +90,7 @@ def build_submap(
             if id_col in table
             else np.arange(len(table), dtype=np.int64)
         )
-        pts, seg = sample_segments(p0, p1, spacing_m)
+        pts, seg = sample_segments(p0, p1, step)
         parts.append(
             pd.DataFrame(
                 {

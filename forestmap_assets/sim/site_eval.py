@@ -149,7 +149,8 @@ def extract_scan_features(image, params, *, circle_options: dict | None = None) 
     feats["line_segments"] = extract_line_segments(image, lp,
                                                    **{k: getattr(lp, k) for k in LINE_EXTRA})
     feats["submaps"] = build_submap(feats["cylinder_segments"], feats["line_segments"],
-                                    params.submaps.spacing_m)
+                                    params.submaps.spacing_m,
+                                    getattr(params.submaps, "cylinder_weight", 1))
     return feats
 
 
