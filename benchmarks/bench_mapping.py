@@ -195,7 +195,8 @@ def run_one(seed: int, args, work: Path) -> dict:
     # pose sigmas for each scan correlation rho (the link decisions do not depend on it)
     camp = load_campaign(root)
     mp = camp.params.mapping
-    accepted = load_asset("pairwise_registrations", campaign=root)["registrations"]
+    # the observations the optimal map uses: branch and bound, refined where it fits better
+    accepted = load_asset("refined_registrations", campaign=root)["registrations"]
     accepted = accepted[accepted["status"] == "accepted"].reset_index(drop=True)
     rhos = sorted(set(RHO_SWEEP) | {args.rho_key})
     pose_sets = []
