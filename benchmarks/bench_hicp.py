@@ -13,8 +13,8 @@ colour camera, ``sim/colour.py``; E57 files, which keep RGB) in ``--cache``:
    error against the truth per weight.
 3. **Pipeline**: ``forestmap run`` (branch and bound on the feature sub-maps), then every accepted
    pair refined on the raw points (``core.refine``) by HICP + robust point-to-plane (the pipeline's
-   default for colour scans), HICP alone, plain ICP (w = 0), robust point-to-plane (the default
-   without colour) and least-squares point-to-plane (with and without Open3D first); pair
+   default for colour scans), HICP alone, plain ICP (w = 0), Open3D point-to-plane with a Tukey
+   kernel + robust 4-DoF steps (the default without colour) and the same in least squares; pair
    errors and the optimal map's pose errors against the truth before and after, and the errors
    divided by the reported sigmas.
 
@@ -206,10 +206,10 @@ def pipeline_refinement(folder: Path, clouds, truth, progress=print):
                 "HICP w = 0.05 + robust point-to-plane (default, colour)": settings,
                 "HICP w = 0.05 alone (Men)": replace(settings, plane_polish=False),
                 "3-D ICP (w = 0)": replace(settings, method="icp", plane_polish=False),
-                "robust point-to-plane (default, no colour)": replace(settings, method="point_to_plane"),
-                "least-squares point-to-plane": replace(settings, method="point_to_plane", robust_k=None),
-                "Open3D point-to-plane + least-squares 4-DoF": replace(settings, method="point_to_plane",
-                                                                       robust_k=None, open3d_start=True)}
+                "Open3D point-to-plane, Tukey kernel + robust 4-DoF (default, no colour)":
+                    replace(settings, method="point_to_plane"),
+                "Open3D point-to-plane + 4-DoF, least squares": replace(settings, method="point_to_plane",
+                                                                         robust_k=None)}
     pair_rows, pose_rows, raw_rows = [], [], []
     tpos = truth.set_index("scan")
     for name, s in variants.items():

@@ -518,9 +518,11 @@ def open3d_point_to_plane(
     model_normals: np.ndarray | None = None,
     normal_radius_m: float = 0.3,
     max_iterations: int = 50,
+    tukey_k_m: float | None = None,
 ) -> tuple[np.ndarray, int, float]:
     """Open3D point-to-plane ICP from a 4-DoF start; returns the 6-DoF matrix, Open3D's
-    iteration-independent fitness count (pairs) and its inlier RMSE."""
+    iteration-independent fitness count (pairs) and its inlier RMSE. ``tukey_k_m``: Open3D's
+    Tukey robust kernel with that cut-off (metres); None: least squares."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -533,6 +535,8 @@ def open3d_point_to_plane(
     r, t = pose4_to_matrix(init_pose)
     init = np.eye(4)
     init[:3, :3], init[:3, 3] = r, t
-    res = reg.registration_icp(src, tgt, max_distance_m, init, reg.TransformationEstimationPointToPlane(),
+    estimation = (reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=tukey_k_m)) if tukey_k_m
+                  else reg.TransformationEstimationPointToPlane())
+    res = reg.registration_icp(src, tgt, max_distance_m, init, estimation,
                                reg.ICPConvergenceCriteria(max_iteration=max_iterations))
     return np.asarray(res.transformation), len(res.correspondence_set), float(res.inlier_rmse)

@@ -12,13 +12,13 @@ the two range images:
    reference (model) at ``model_voxel_m`` (spec 3.2);
 2. **HICP** (:func:`~.hicp.hicp`, 4-DoF, weight ``weight``, isotropic shared scale) where both
    scans have colour, finished by the robust point-to-plane steps below (``plane_polish``);
-   else **robust 4-DoF point-to-plane ICP** (:func:`~.hicp.point_to_plane_4dof`, Gauss-Newton
-   from the branch-and-bound pose, ``plane_iterations`` steps; ``open3d_start`` runs Open3D's
-   6-DoF point-to-plane ICP first); the association radius is ``radius_m``. Pairs are weighted
-   by Tukey's biweight at ``robust_k`` robust sigmas: two scans see different sides of a stem,
-   and plain least squares lets the far side pull the pose by several millimetres (the minimum
-   of the least-squares objective lies 5-11 mm from the truth on the simulated sample;
-   benchmarks/results.md). ``max_normal_angle_deg`` optionally keeps only pairs whose normals
+   else **Open3D point-to-plane ICP** with Open3D's Tukey kernel (``open3d_start``), finished by
+   robust 4-DoF point-to-plane Gauss-Newton steps in the levelled frame
+   (:func:`~.hicp.point_to_plane_4dof`, ``plane_iterations``); the association radius is
+   ``radius_m``. Pairs are weighted by Tukey's biweight at ``robust_k`` robust sigmas: two scans
+   see different sides of a stem, and plain least squares lets the far side pull the pose by
+   several millimetres (the minimum of the least-squares objective lies 5-11 mm from the truth
+   on the simulated sample; benchmarks/results.md). ``max_normal_angle_deg`` optionally keeps only pairs whose normals
    (each oriented toward its own scanner) agree. Before HICP the median hue difference of
    spatially paired points is removed (``hue_offset``: cameras' white balance differs between
    scans, which the thesis's hue invariance ignores);
@@ -95,11 +95,11 @@ class RefineSettings:
     sd_floor_deg: float = 0.012
     min_pairs: int = 200
     min_fit_gain: float = 0.0  # relative: the refined fit must be lower by this share
-    # point-to-plane: pairs only between surfaces facing the same way (None: no gate), and the
-    # number of 4-DoF Gauss-Newton steps; Open3D's 6-DoF ICP first only when ``open3d_start``
+    # point-to-plane: pairs only between surfaces facing the same way (None: no gate), the
+    # number of 4-DoF Gauss-Newton steps, and Open3D's 6-DoF point-to-plane ICP first
     max_normal_angle_deg: float | None = None
     plane_iterations: int = 30
-    open3d_start: bool = False
+    open3d_start: bool = True
     robust_k: float | None = 4.685  # Tukey's biweight constant (95 % efficiency); None: least squares
 
 
@@ -248,7 +248,8 @@ def refine_pair(
         start = pose
         if s.open3d_start:
             mat, _, _ = open3d_point_to_plane(model, data, pose, max_distance_m=s.radius_m,
-                                              model_normals=normals, max_iterations=s.max_iterations)
+                                              model_normals=normals, max_iterations=s.max_iterations,
+                                              tukey_k_m=trunc)
             start = matrix_to_pose4(mat[:3, :3], mat[:3, 3])
             start = pose + np.clip(np.r_[start[:3] - pose[:3], wrap_deg(start[3] - pose[3])], -half, half)
         new_pose, _, its = point_to_plane_4dof(model, normals, data, start, max_distance_m=s.radius_m,
