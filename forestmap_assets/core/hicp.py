@@ -458,16 +458,10 @@ def point_to_plane_4dof(
     tree: cKDTree | None = None,
     box=None,
     tol: float = 1e-7,
-    data_normals: np.ndarray | None = None,
-    max_normal_angle_deg: float | None = None,
     robust_k: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """4-DoF point-to-plane Gauss-Newton ICP (x, y, z, heading): pose, final partner indices
-    (-1 none) and iterations (inferred). With ``data_normals`` and ``max_normal_angle_deg``, a
-    pair counts only when the rotated data normal and the model normal (each oriented toward its
-    own scanner) differ by less than that angle: two scans see different sides of a stem, and a
-    point of the far side must not be pulled onto the near side's surface (normal compatibility,
-    inferred). With ``robust_k``, iteratively re-weighted least squares with Tukey's biweight at
+    (-1 none) and iterations (inferred). With ``robust_k``, iteratively re-weighted least squares with Tukey's biweight at
     ``robust_k`` times the residuals' robust spread (1.4826 MAD), so that pairs of different
     surfaces within ``max_distance_m`` do not bias the pose (inferred)."""
     model = np.asarray(model_xyz, dtype=np.float64)
@@ -483,9 +477,6 @@ def point_to_plane_4dof(
         _, idx = tree.query(moved, k=1, distance_upper_bound=max_distance_m)
         ok = (idx < len(model))
         ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
-        if data_normals is not None and max_normal_angle_deg is not None:
-            cos = np.einsum("ij,ij->i", data_normals[ok] @ r.T, normals[idx[ok]])
-            ok[ok] &= np.nan_to_num(cos, nan=-1.0) >= np.cos(np.radians(max_normal_angle_deg))
         partner = np.where(ok, idx, -1)
         if ok.sum() < 4:
             break

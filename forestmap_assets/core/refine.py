@@ -18,8 +18,7 @@ the two range images:
    ``radius_m``. Pairs are weighted by Tukey's biweight at ``robust_k`` robust sigmas: two scans
    see different sides of a stem, and plain least squares lets the far side pull the pose by
    several millimetres (the minimum of the least-squares objective lies 5-11 mm from the truth
-   on the simulated sample; benchmarks/results.md). ``max_normal_angle_deg`` optionally keeps only pairs whose normals
-   (each oriented toward its own scanner) agree. Before HICP the median hue difference of
+   on the simulated sample; benchmarks/results.md). Before HICP the median hue difference of
    spatially paired points is removed (``hue_offset``: cameras' white balance differs between
    scans, which the thesis's hue invariance ignores);
 3. the pose is **kept inside the branch-and-bound cloud's box** ``centre +- box_sigmas * sd``
@@ -101,9 +100,7 @@ class RefineSettings:
     sd_inflation: float = 1.8  # the ICP-Hessian sigmas are multiplied by this before the floors
     min_pairs: int = 200
     min_fit_gain: float = 0.0  # relative: the refined fit must be lower by this share
-    # point-to-plane: pairs only between surfaces facing the same way (None: no gate), the
-    # number of 4-DoF Gauss-Newton steps, and Open3D's 6-DoF point-to-plane ICP first
-    max_normal_angle_deg: float | None = None
+    # point-to-plane: the number of 4-DoF Gauss-Newton steps, and Open3D's 6-DoF ICP first
     plane_iterations: int = 30
     open3d_start: bool = True
     robust_k: float | None = 4.685  # Tukey's biweight constant (95 % efficiency); None: least squares
@@ -118,6 +115,15 @@ def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.all((points >= lo) & (points <= hi), axis=1)
 
 
+def _plane_residuals(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float) -> np.ndarray:
+    """Signed point-to-plane distances ``n . (m - p)`` of the moved data points to their nearest
+    model point within ``radius_m`` (pairs without a model normal left out)."""
+    d, idx = tree.query(moved, distance_upper_bound=radius_m)
+    ok = np.isfinite(d)
+    ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
+    return (normals[idx[ok]] * (tree.data[idx[ok]] - moved[ok])).sum(axis=1)
+
+
 def fit_error(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float,
               truncate_m: float | None = None) -> tuple[float, int]:
     """Mean point-to-plane distance ``|n . (m - p)|`` of the moved data points to their nearest
@@ -126,25 +132,19 @@ def fit_error(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: f
     barely changes with a few millimetres of misalignment). With ``truncate_m`` each distance
     counts at most that much (a pair of different surfaces, e.g. the two sides of a stem, then
     weighs as little as in the robust ICP; inferred)."""
-    d, idx = tree.query(moved, distance_upper_bound=radius_m)
-    ok = np.isfinite(d)
-    ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
-    if not ok.any():
+    res = np.abs(_plane_residuals(tree, normals, moved, radius_m))
+    if res.size == 0:
         return np.nan, 0
-    res = np.abs((normals[idx[ok]] * (tree.data[idx[ok]] - moved[ok])).sum(axis=1))
     if truncate_m is not None:
         res = np.minimum(res, truncate_m)
-    return float(res.mean()), int(ok.sum())
+    return float(res.mean()), int(res.size)
 
 
 def robust_scale(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float) -> float:
     """1.4826 x the median absolute deviation of the point-to-plane distances (robust sigma)."""
-    d, idx = tree.query(moved, distance_upper_bound=radius_m)
-    ok = np.isfinite(d)
-    ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
-    if not ok.any():
+    res = _plane_residuals(tree, normals, moved, radius_m)
+    if res.size == 0:
         return np.nan
-    res = (normals[idx[ok]] * (tree.data[idx[ok]] - moved[ok])).sum(axis=1)
     return float(1.4826 * np.median(np.abs(res - np.median(res))))
 
 
@@ -194,19 +194,7 @@ def refine_pair(
     if len(data) < s.min_pairs or len(model) < s.min_pairs:
         row["reason"] = "too little overlap of the raw points"
         return row
-    data_normals = None
-    if s.max_normal_angle_deg is not None and method == "point_to_plane":
-        # data normals from the data at the model's spacing (a stem is too thin for PCA at the
-        # coarse data voxel), each oriented toward the data's own scanner at its origin
-        fine = voxel_subsample(data, s.model_voxel_m) if s.model_voxel_m else np.arange(len(data))
-        fine_normals, _ = pca_normals(data[fine], s.normal_k, origin=(0.0, 0.0, 0.0))
-        data, fine_sel = data[fine], fine
-        if colour:
-            hd = hd[fine_sel]
-        kd = voxel_subsample(data, s.data_voxel_m) if s.data_voxel_m else np.arange(len(data))
-        data_normals = fine_normals[kd]
-    else:
-        kd = voxel_subsample(data, s.data_voxel_m) if s.data_voxel_m else np.arange(len(data))
+    kd = voxel_subsample(data, s.data_voxel_m) if s.data_voxel_m else np.arange(len(data))
     km = voxel_subsample(model, s.model_voxel_m) if s.model_voxel_m else np.arange(len(model))
     data, model = data[kd], model[km]
     hd = hd[kd] if colour else None
@@ -260,8 +248,6 @@ def refine_pair(
             start = pose + np.clip(np.r_[start[:3] - pose[:3], wrap_deg(start[3] - pose[3])], -half, half)
         new_pose, _, its = point_to_plane_4dof(model, normals, data, start, max_distance_m=s.radius_m,
                                                iterations=s.plane_iterations, tree=tree3, box=box,
-                                               data_normals=data_normals,
-                                               max_normal_angle_deg=s.max_normal_angle_deg,
                                                robust_k=s.robust_k)
         row.update(iterations=its, converged=True)
         rel = np.abs(np.r_[new_pose[:3] - pose[:3], wrap_deg(new_pose[3] - pose[3])])
