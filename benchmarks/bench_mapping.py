@@ -184,7 +184,7 @@ def run_one(seed: int, args, work: Path) -> dict:
     pairs["admitted"] = pd.MultiIndex.from_frame(pairs[["scan", "reference"]]).isin(
         pd.MultiIndex.from_frame(admitted))
     ok = pairs[pairs["admitted"] & ~pairs["wrong"]]
-    prods, squares = correlation_products(links[links["status"] == "admitted"], truth)
+
     # DBH of the same integrated map: issue-5 rule before this change vs the current defaults
     im = load_asset("integrated_map", campaign=root)
     grid = elevation_from_table(im["elevation"])
@@ -198,16 +198,19 @@ def run_one(seed: int, args, work: Path) -> dict:
     # the observations the optimal map uses: branch and bound, refined where it fits better
     accepted = load_asset("refined_registrations", campaign=root)["registrations"]
     accepted = accepted[accepted["status"] == "accepted"].reset_index(drop=True)
-    rhos = sorted(set(RHO_SWEEP) | {args.rho_key})
     pose_sets = []
-    for rho in rhos:
-        value = args.rho if rho == args.rho_key else rho
-        sel = select_links(accepted, camp.scan_ids[0], scans=camp.scan_ids, confidence="confidence",
-                           covariance=mp.covariance, iterate=mp.iterate,
-                           residual_sigmas=mp.residual_sigmas,
-                           z_residual_sigmas=mp.z_residual_sigmas, scan_correlation=value)
-        pe = pose_errors(sel.solution.poses, truth)
+    for rho in (args.rho_key, *RHO_SWEEP):  # the pipeline's own poses (rho per link type), sweep
+        if rho == args.rho_key:
+            poses = load_asset("optimal_map", campaign=root)["poses"]
+        else:
+            poses = select_links(accepted, camp.scan_ids[0], scans=camp.scan_ids,
+                                 confidence="confidence", covariance=mp.covariance,
+                                 iterate=mp.iterate, residual_sigmas=mp.residual_sigmas,
+                                 z_residual_sigmas=mp.z_residual_sigmas,
+                                 scan_correlation=rho).solution.poses
+        pe = pose_errors(poses, truth)
         pose_sets.append(pe[pe["scan"] != camp.scan_ids[0]].assign(rho=rho))
+    refined = links["refined"].astype(bool) if "refined" in links else False
     sweep = temperature_sweep(root, truth).assign(seed=seed)
     return {
         "seed": seed,
@@ -225,7 +228,8 @@ def run_one(seed: int, args, work: Path) -> dict:
         **{f"{k}_after": v for k, v in dbh_after.items()},
         "poses": pd.concat(pose_sets, ignore_index=True),
         "pair_norm": ok,
-        "corr": (prods, squares),
+        "corr": correlation_products(links[(links["status"] == "admitted") & refined], truth),
+        "refined_admitted": int(((links["status"] == "admitted") & refined).sum()),
         "sweep": sweep,
     }
 
@@ -282,8 +286,11 @@ def resolution_lines(res: str, rows: list[dict], norm, pnorm, sweeps, corr, args
         q = np.concatenate([c[1] for c in corr])
         est = p.mean(0) / q.mean(0)
         se = p.std(0) / np.sqrt(max(len(p), 1)) / q.mean(0)
-        lines += ["", f"Correlation of the normalised errors of two admitted links sharing one scan "
-                  f"(global frame, signed by the side the scan is on; {len(p)} link pairs): "
+        n_ref = sum(r.get("refined_admitted", 0) for r in rows)
+        n_adm = sum(r.get("admitted", 0) for r in rows)
+        lines += ["", f"Correlation of the normalised errors of two admitted refined links sharing "
+                  f"one scan ({n_ref} of the {n_adm} admitted links were refined; global frame, "
+                  f"signed by the side the scan is on; {len(p)} link pairs): "
                   + ", ".join(f"{c} {v:.2f} +- {e:.2f}" for c, v, e in
                               zip(("x", "y", "z", "heading"), est, se, strict=True)) + "."]
     if len(allp):
@@ -292,8 +299,9 @@ def resolution_lines(res: str, rows: list[dict], norm, pnorm, sweeps, corr, args
         lines += ["", "Normalised pose errors (error / reported sd of the optimal map) over all "
                   "placed scans and seeds, **before** (independent observations, the thesis's "
                   "C, `scan_correlation=0`):", "", *head, *spread_rows(before),
-                  "", f"**After** (`scan_correlation={args.rho_label}`, observations sharing a "
-                  "scan correlated, `core/optimal_map.py` `shared_scan_covariance`; same poses):",
+                  "", f"**After**: the pipeline's own poses (`optimal_map`; {args.rho_label}; "
+                  "observations sharing a scan correlated, `core/optimal_map.py` "
+                  "`shared_scan_covariance`; same poses):",
                   "", *head, *spread_rows(after),
                   "", "Pose RMS of error / sd for a single rho on all components (sweep):", "",
                   "| rho | x | y | z | heading | x, y, heading pooled | share within +-2 (x, y, heading) |",
@@ -317,7 +325,7 @@ def resolution_lines(res: str, rows: list[dict], norm, pnorm, sweeps, corr, args
 
 
 def main() -> None:
-    from forestmap_assets.core.optimal_map import PIPELINE_SCAN_CORRELATION
+    from forestmap_assets.params import PRESETS
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=5)
@@ -330,9 +338,11 @@ def main() -> None:
     ap.add_argument("--work", default=None,
                     help="folder to keep campaigns and stores in (reused; default: a temp dir)")
     args = ap.parse_args()
-    args.rho = PIPELINE_SCAN_CORRELATION
-    args.rho_key = -1.0  # label of the pipeline default in the pose tables
-    args.rho_label = "(" + ", ".join(f"{v:g}" for v in np.broadcast_to(args.rho, (4,))) + ")"
+    args.rho_key = -1.0  # label of the pipeline's own poses in the pose tables
+    forest = PRESETS["forest"]["mapping"]
+    args.rho_label = ", ".join(
+        f"`{k}=(" + ", ".join(f"{v:g}" for v in forest[k]) + ")`"
+        for k in ("scan_correlation", "refined_scan_correlation"))
     body_parts = [
         "## Whole pipeline on simulated campaigns (issue 5)",
         "",
@@ -348,10 +358,13 @@ def main() -> None:
         "so the poses came out over-confident while the pairs were not. Model: observation error "
         "`sqrt(1 - 2 rho) v + u_i - u_j` with a per-scan error u; the Lu-Milios poses and "
         "residuals (hence every link decision and the thesis tables) stay the same and C_x "
-        "becomes `(1 - 2 rho) C_x + K`. rho was **estimated on the quarter-resolution seeds** "
-        "(the correlation of link errors sharing a scan, below) and **checked on the "
-        "half-resolution seeds**, where it was not fitted. Pipeline default "
-        f"`scan_correlation={args.rho_label}` (x, y, z, heading).",
+        "becomes `A C_full A^T` (`(1 - 2 rho) C_x + K` for one common rho). Each observation "
+        "type has its own rho and its own per-scan error (forest preset, x, y, z, heading): "
+        "branch-and-bound links "
+        "(cell-cloud poses from the sub-maps' features) were measured correlated at quarter "
+        "resolution, `mapping.scan_correlation`; links whose pose the refinement replaced are "
+        "fitted on the raw points and are barely correlated (measured at half resolution, below), "
+        f"`mapping.refined_scan_correlation`: {args.rho_label}.",
         "",
         "DBH (`core/trees.py`): the cone slope of a cylinder is limited to 1 cm of radius per "
         "metre and cylinders ending within 1.0 m (was 0.6 m) of breast height take part. The "

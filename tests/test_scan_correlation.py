@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.core.link_selection import select_links
-from forestmap_assets.core.optimal_map import shared_scan_covariance, solve_network
+from forestmap_assets.core.optimal_map import RHO_COLUMNS, shared_scan_covariance, solve_network
 
 SCANS = list("ABCDE")
 TRUE = np.array([[0.0, 0.0, 0.0, 0.0], [6.0, 1.0, 0.2, 0.0], [3.0, 7.0, -0.1, 0.0],
@@ -15,20 +15,23 @@ TRUE = np.array([[0.0, 0.0, 0.0, 0.0], [6.0, 1.0, 0.2, 0.0], [3.0, 7.0, -0.1, 0.
 PAIRS = [(1, 0), (2, 0), (3, 0), (4, 0), (2, 1), (3, 2), (4, 3), (3, 1), (4, 1)]
 
 
-def _draw(rng: np.random.Generator, sd: np.ndarray, rho: float) -> pd.DataFrame:
+def _draw(rng: np.random.Generator, sd: np.ndarray, rho) -> pd.DataFrame:
     """Observations with errors ``sqrt(1 - 2 rho) v + u_i - u_j`` (the model of the docstring;
-    all true headings 0, so local and global frames agree)."""
+    all true headings 0, so local and global frames agree); ``rho`` one value or one per
+    observation row, observations with the same rho forming one type with its own ``u``."""
     i = np.array([p[0] for p in PAIRS])
     j = np.array([p[1] for p in PAIRS])
-    var = sd**2
-    s_var = np.zeros((len(SCANS), 4))
-    n = np.zeros(len(SCANS))
-    np.add.at(s_var, i, var)
-    np.add.at(s_var, j, var)
-    np.add.at(n, i, 1)
-    np.add.at(n, j, 1)
-    u = rng.normal(size=(len(SCANS), 4)) * np.sqrt(rho * s_var / n[:, None])
-    e = np.sqrt(1 - 2 * rho) * rng.normal(size=sd.shape) * sd + u[i] - u[j]
+    rho = np.broadcast_to(np.asarray(rho, dtype=float).reshape(-1, 1), (len(PAIRS), 1))
+    e = np.sqrt(1 - 2 * rho) * rng.normal(size=sd.shape) * sd
+    for value in np.unique(rho):
+        k = np.flatnonzero(rho[:, 0] == value)
+        s_var = np.zeros((len(SCANS), 4))
+        n = np.zeros(len(SCANS))
+        for ends in (i[k], j[k]):
+            np.add.at(s_var, ends, value * sd[k] ** 2)
+            np.add.at(n, ends, 1)
+        u = rng.normal(size=(len(SCANS), 4)) * np.sqrt(s_var / np.maximum(n, 1)[:, None])
+        e[k] += u[i[k]] - u[j[k]]
     d = TRUE[i] - TRUE[j] + e
     return pd.DataFrame({"scan": [SCANS[k] for k in i], "reference": [SCANS[k] for k in j],
                          "dx": d[:, 0], "dy": d[:, 1], "dz": d[:, 2], "dheading_deg": d[:, 3],
@@ -93,3 +96,34 @@ def test_link_selection_verdicts_do_not_depend_on_correlation():
     pd.testing.assert_series_equal(a.links["status"], b.links["status"])
     assert (a.links["status"] == "rejected").sum() == 1
     assert (b.solution.poses["sd_x"].iloc[1:] > a.solution.poses["sd_x"].iloc[1:]).all()
+
+
+def test_each_observation_type_keeps_its_own_correlation():
+    """Refined links are barely correlated, branch-and-bound links are: per-observation rho
+    (``RHO_COLUMNS``) gives calibrated sigmas where any single rho is off."""
+    rng = np.random.default_rng(11)
+    rho = np.where(np.arange(len(PAIRS)) % 2 == 0, 0.45, 0.0)  # two observation types
+    sd = np.array([0.01, 0.015, 0.004, 0.02]) * rng.uniform(0.6, 1.6, size=(len(PAIRS), 1))
+    own, low, high = [], [], []
+    for _ in range(300):
+        obs = _draw(rng, sd, rho)
+        typed = obs.assign(**{c: rho for c in RHO_COLUMNS})
+        a = solve_network(typed, SCANS, iterate=True)
+        b = solve_network(obs, SCANS, iterate=True, scan_correlation=0.0)
+        np.testing.assert_allclose(a.poses[["x", "y", "z", "heading_deg"]],
+                                   b.poses[["x", "y", "z", "heading_deg"]], atol=1e-12)
+        own.append(_normalised(a))
+        low.append(_normalised(b))
+        high.append(_normalised(solve_network(obs, SCANS, iterate=True, scan_correlation=0.45)))
+    rms = {k: np.sqrt(np.mean(np.concatenate(v) ** 2, axis=0))
+           for k, v in (("own", own), ("low", low), ("high", high))}
+    assert np.all(np.abs(rms["own"] - 1.0) < 0.08), rms
+    assert np.all(rms["low"] > rms["own"] + 0.05) and np.all(rms["high"] < rms["own"] - 0.05), rms
+    # the same rho in every row is the scalar argument; a row without its own rho takes it
+    obs = _draw(rng, sd, 0.2)
+    same = solve_network(obs.assign(**{c: 0.2 for c in RHO_COLUMNS}), SCANS)
+    np.testing.assert_allclose(same.covariance, solve_network(obs, SCANS, scan_correlation=0.2)
+                               .covariance, rtol=1e-9, atol=1e-15)
+    part = obs.assign(**{c: np.where(np.arange(len(obs)) < 3, 0.2, np.nan) for c in RHO_COLUMNS})
+    np.testing.assert_allclose(solve_network(part, SCANS, scan_correlation=0.2).covariance,
+                               same.covariance, rtol=1e-9, atol=1e-15)

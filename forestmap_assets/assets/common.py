@@ -34,7 +34,7 @@ CODE_VERSIONS: dict[str, str] = {
     "candidate_pairs": "1",
     "pairwise_registrations": "2",
     "refined_registrations": "1",
-    "optimal_map": "2",
+    "optimal_map": "3",
     "residual_checks": "1",
     "integrated_map": "2",
     "tree_list": "3",

@@ -58,6 +58,7 @@ def mapping_assets(campaign: Campaign) -> list:
     from ..core.candidates import candidate_pairs as make_candidates
     from ..core.elevation import merge_elevation
     from ..core.link_selection import select_links
+    from ..core.optimal_map import RHO_COLUMNS
     from ..core.pair_registrations import register_candidates
     from ..core.submaps import submap_reach
     from ..core.trees import cylinders_to_global, merge_trees
@@ -169,6 +170,9 @@ def mapping_assets(campaign: Campaign) -> list:
             poses = poses_table(campaign, chained.poses)
             links, residuals = chained.links, chained.residuals
         else:
+            refined = accepted["refined"].to_numpy(bool)[:, None] if "refined" in accepted else False
+            rho = np.where(refined, mp.refined_scan_correlation, mp.scan_correlation)
+            accepted[list(RHO_COLUMNS)] = np.broadcast_to(rho, (len(accepted), 4))
             sel = select_links(accepted, reference, scans=campaign.scan_ids, confidence="confidence",
                                covariance=mp.covariance, iterate=mp.iterate,
                                residual_sigmas=mp.residual_sigmas, z_residual_sigmas=mp.z_residual_sigmas,

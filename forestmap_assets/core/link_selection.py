@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.chaining import OBSERVATION_COLUMNS, SD_COLUMNS, Covariance
-from forestmap_assets.core.optimal_map import MapSolution, solve_network
+from forestmap_assets.core.optimal_map import RHO_COLUMNS, MapSolution, solve_network
 from forestmap_assets.core.residuals import COMPONENT_NAMES, normalised_excess
 
 Verdict = Literal["ok", "inconsistent", "untestable"]
@@ -98,8 +98,9 @@ def check_link_hypothesis(
     hyp = hypothesis.to_frame().T if isinstance(hypothesis, pd.Series) else hypothesis
     if len(hyp) != 1:
         raise ValueError(f"hypothesis must be one observation row, got {len(hyp)}")
-    hyp = hyp.loc[:, list(OBSERVATION_COLUMNS)]
-    obs = observations.loc[:, list(OBSERVATION_COLUMNS)]
+    cols = list(OBSERVATION_COLUMNS) + [c for c in RHO_COLUMNS if c in observations.columns]
+    hyp = hyp.reindex(columns=cols)
+    obs = observations.loc[:, cols]
     s, r = str(hyp["scan"].iloc[0]), str(hyp["reference"].iloc[0])
     scans = _scan_order(reference, [obs, hyp], scans)
     if baseline is None:

@@ -51,6 +51,9 @@ Linearisation = Literal["projection", "gauss_newton"]
 # with one value for x and y (a per-scan error has no preferred horizontal direction). Checked,
 # not fitted, on half resolution (benchmarks/results.md, mapping section).
 PIPELINE_SCAN_CORRELATION: tuple[float, float, float, float] = (0.25, 0.25, 0.15, 0.05)
+# Optional observation columns: that observation's own rho (x, y, z, heading), overriding the
+# ``scan_correlation`` argument (:func:`observation_correlation`).
+RHO_COLUMNS = ("rho_x", "rho_y", "rho_z", "rho_heading")
 
 
 @dataclass
@@ -206,6 +209,20 @@ def solve_linear(
     return x, cov, reg
 
 
+def observation_correlation(
+    observations: pd.DataFrame, scan_correlation: float | Sequence[float] = 0.0
+) -> np.ndarray:
+    """rho per observation row (M, 4: x, y, z, heading): the ``RHO_COLUMNS`` of ``observations``
+    where present and finite (each observation type has its own correlation, e.g. refined and
+    branch-and-bound links, inferred), else ``scan_correlation``."""
+    rho = np.tile(np.broadcast_to(np.asarray(scan_correlation, dtype=float), (4,)),
+                  (len(observations), 1))
+    if set(RHO_COLUMNS) <= set(observations.columns):
+        own = observations.loc[:, list(RHO_COLUMNS)].to_numpy(dtype=float)
+        rho = np.where(np.isfinite(own), own, rho)
+    return rho
+
+
 def shared_scan_covariance(
     cov: np.ndarray,
     n: int,
@@ -214,53 +231,68 @@ def shared_scan_covariance(
     j: np.ndarray,
     c_g: np.ndarray,
     reg: np.ndarray,
-    scan_correlation: float | Sequence[float],
+    scan_correlation: float | Sequence[float] | np.ndarray,
 ) -> np.ndarray:
     """``C_x`` of the Lu-Milios estimate when observations sharing a scan are correlated.
 
-    Model (beyond the thesis, inferred): the error of observation ``d_ij`` is
-    ``sqrt(1 - 2 rho) v_ij + u_i - u_j``, ``v_ij ~ N(0, C_ij)`` independent and ``u_s`` a per-scan
+    Model (beyond the thesis, inferred): the error of observation ``k = d_ij`` is
+    ``sqrt(1 - 2 rho_k) v_k + u_i - u_j``, ``v_k ~ N(0, C_k)`` independent and ``u_s`` a per-scan
     error (the scan's own feature errors, shared by all its registrations) with covariance
-    ``S_s = rho * mean(C_k)`` over the used observations ``k`` touching scan ``s`` (projected
-    blocks ``c_g``). With equal ``C`` an observation keeps its marginal covariance ``C`` and two
-    observations sharing one scan have correlation ``rho`` (sign by the side the scan is on),
-    i.e. ``C_full = (1 - 2 rho) D + B S B^T`` with ``B`` the incidence matrix of all scans.
-    The reference column of ``B`` is ``-H 1`` (rows sum to zero), so ``B S B^T = H K H^T`` with
-    ``K = S_free + 1 S_root 1^T``; for ``C = a D + H K H^T`` the estimate
-    ``(H^T D^-1 H)^-1 H^T D^-1 d`` is still the minimum-variance one (Rao's condition
-    ``A C Z = 0`` for ``H^T Z = 0``), the residuals are unchanged, and its covariance is
-    ``(1 - 2 rho) (H^T D^-1 H)^-1 + K``: what this returns (``cov`` = ``(H^T D^-1 H)^-1``,
-    4n x 4n, root and unregistered rows as given). ``rho = 0`` returns ``cov`` (the thesis);
-    ``rho`` must lie in [0, 0.5]. A sequence gives one rho per component (x, y, z, heading):
-    ``S_s`` is then scaled elementwise by ``sqrt(rho_a rho_b)`` (a Schur product, still PSD) and
-    ``C_x`` by ``sqrt((1 - 2 rho_a) (1 - 2 rho_b))``, exact when the projected blocks are
-    diagonal (the published rule: the four components decouple), first order otherwise.
+    ``S_s = mean(rho_k C_k)`` over the used observations ``k`` touching scan ``s`` (projected
+    blocks ``c_g``). With equal ``rho C`` an observation keeps its marginal covariance ``C`` and
+    two observations sharing one scan have correlation ``rho`` (sign by the side the scan is on).
+    Observations of different types (different rho rows, e.g. branch-and-bound links from the
+    sub-maps' features and refined links fitted on the raw points) carry different errors of a
+    scan: each type has its own ``u`` (``S`` averaged over that type only), uncorrelated across
+    types. So ``C_full = D' + sum_t B_t S_t B_t^T`` with ``D' = diag((1 - 2 rho_k) C_k)`` and
+    ``B_t`` the incidence matrix of the type-``t`` observations; the thesis's estimate ``A d``,
+    ``A = (H^T D^-1 H)^-1 H^T D^-1`` (poses and residuals unchanged) has covariance
+    ``A C_full A^T``: what this returns (``cov`` = ``(H^T D^-1 H)^-1``, 4n x 4n, root and
+    unregistered rows as given). For one type this is ``(1 - 2 rho) C_x + K``
+    (``K = S_free + 1 S_root 1^T``), the minimum-variance estimate's own covariance (Rao's
+    condition ``A C Z = 0`` for ``H^T Z = 0``). ``rho = 0`` returns ``cov`` (the thesis); rho
+    must lie in [0, 0.5]. rho is one value, one per component (x, y, z, heading; blocks scaled
+    elementwise by ``sqrt(rho_a rho_b)`` and ``sqrt((1 - 2 rho_a) (1 - 2 rho_b))``, Schur
+    products that keep them PSD) or one row per observation (M, 4;
+    :func:`observation_correlation`).
     """
-    rho = np.broadcast_to(np.asarray(scan_correlation, dtype=float), (4,))
+    rho = np.asarray(scan_correlation, dtype=float)
+    rho = np.broadcast_to(rho if rho.ndim == 2 else np.broadcast_to(rho, (4,)), (len(i), 4))
     if not np.all((rho >= 0.0) & (rho <= 0.5)):
         raise ValueError(f"scan_correlation must lie in [0, 0.5], got {scan_correlation}")
     if not rho.any() or len(i) == 0:
         return cov
     use = reg[i] & reg[j]
-    i, j, c_g = i[use], j[use], c_g[use]
-    total = np.zeros((n, 4, 4))
-    count = np.zeros(n)
-    np.add.at(total, i, c_g)
-    np.add.at(total, j, c_g)
-    np.add.at(count, i, 1.0)
-    np.add.at(count, j, 1.0)
-    s = np.sqrt(np.outer(rho, rho)) * total / np.maximum(count, 1.0)[:, None, None]  # S_s
+    i, j, c_g, rho = i[use], j[use], c_g[use], rho[use]
     free = np.flatnonzero(reg & (np.arange(n) != root))
     out = cov.copy()
     if free.size == 0:
         return out
+    m = len(i)
+    share = np.sqrt(rho[:, :, None] * rho[:, None, :]) * c_g  # rho_k C_k, Schur form
+    keep = np.sqrt((1.0 - 2.0 * rho)[:, :, None] * (1.0 - 2.0 * rho)[:, None, :])
+    full = np.zeros((m, m, 4, 4))  # C_full by (observation, observation) block
+    full[np.arange(m), np.arange(m)] = keep * c_g
+    _, kind = np.unique(rho, axis=0, return_inverse=True)
+    for t in np.unique(kind):
+        b = np.zeros((m, n))  # incidence of the type-t observations
+        sel = np.flatnonzero(kind.ravel() == t)
+        b[sel, i[sel]], b[sel, j[sel]] = 1.0, -1.0
+        touching = np.abs(b).sum(0)
+        s_t = np.einsum("ks,kab->sab", np.abs(b), share) / np.maximum(touching, 1.0)[:, None, None]
+        full += np.einsum("ks,ls,sab->klab", b, b, s_t)
+    full = full.transpose(0, 2, 1, 3).reshape(4 * m, 4 * m)
+    pos = np.full(n, -1)
+    pos[free] = np.arange(free.size)
+    h = np.zeros((m, free.size, 4, 4))  # H restricted to the free scans
+    for ends, sign in ((i, 1.0), (j, -1.0)):
+        ok = pos[ends] >= 0
+        h[np.flatnonzero(ok), pos[ends[ok]]] = sign * np.eye(4)
+    h = h.transpose(0, 2, 1, 3).reshape(4 * m, 4 * free.size)
+    w = scipy.linalg.block_diag(*np.linalg.inv(c_g))  # D^-1
     idx = (4 * free[:, None] + np.arange(4)).reshape(-1)
-    k = np.tile(s[root], (free.size, free.size))  # 1 S_root 1^T
-    blocks = (4 * np.arange(free.size)[:, None] + np.arange(4)).reshape(-1)
-    k_diag = scipy.linalg.block_diag(*s[free])
-    k[np.ix_(blocks, blocks)] += k_diag
-    keep = np.sqrt(np.outer(1.0 - 2.0 * rho, 1.0 - 2.0 * rho))
-    out[np.ix_(idx, idx)] = np.tile(keep, (free.size, free.size)) * cov[np.ix_(idx, idx)] + k
+    a = cov[np.ix_(idx, idx)] @ h.T @ w
+    out[np.ix_(idx, idx)] = a @ full @ a.T
     return out
 
 
@@ -349,9 +381,9 @@ def solve_network(
     less than ``tolerance_deg`` (spec 8.4 item 5, inferred; the thesis projects once per phase).
     ``heading_variances`` (deg^2) feed ``covariance="full"``. Rows whose scans are not all in
     ``scans`` are ignored; sub-maps not connected to the reference are not registered.
-    ``scan_correlation`` (rho, default 0 = the thesis's independent observations) inflates
-    ``C_x`` for errors shared by the observations of one scan (:func:`shared_scan_covariance`;
-    poses and residuals do not change).
+    ``scan_correlation`` (rho, default 0 = the thesis's independent observations; an
+    observation's own ``RHO_COLUMNS`` take precedence) inflates ``C_x`` for errors shared by the
+    observations of one scan (:func:`shared_scan_covariance`; poses and residuals do not change).
     """
     if linearisation not in ("projection", "gauss_newton"):
         raise ValueError(f"linearisation must be 'projection' or 'gauss_newton', "
@@ -361,6 +393,7 @@ def solve_network(
     i, j, d, sd = observation_arrays(observations, scans)
     rows = np.flatnonzero((i >= 0) & (j >= 0) & (i != j))
     i, j, d, sd = i[rows], j[rows], d[rows].copy(), sd[rows]
+    rho = observation_correlation(observations, scan_correlation)[rows]
     h = _as_array(headings, scans)
     hv = _as_array(heading_variances, scans)
     h[0], hv[0] = 0.0, 0.0
@@ -372,7 +405,7 @@ def solve_network(
         d[:, 3] = unwrap_headings(d[:, 3], h[i] - h[j])
         dg, cg = project_relative(d, sd, h[j], hv[j], covariance)
         x, cov, reg = solve_linear(n, 0, i, j, dg, cg)
-        cov = shared_scan_covariance(cov, n, 0, i, j, cg, reg, scan_correlation)
+        cov = shared_scan_covariance(cov, n, 0, i, j, cg, reg, rho)
         if not iterate or rounds >= max_iterations:
             break
         change = np.nanmax(np.abs(x[reg, 3] - h[reg])) if reg.any() else 0.0
@@ -388,7 +421,7 @@ def solve_network(
         hv = np.where(reg, np.diagonal(cov)[3::4], hv)
         d[:, 3] = unwrap_headings(d[:, 3], h[i] - h[j])
         dg, cg = project_relative(d, sd, h[j], hv[j], covariance)
-        cov = shared_scan_covariance(cov, n, 0, i, j, cg, reg, scan_correlation)  # approx.
+        cov = shared_scan_covariance(cov, n, 0, i, j, cg, reg, rho)  # approx.
     var = np.diagonal(cov).reshape(n, 4)
     poses = pd.DataFrame(x, columns=list(POSE_COLUMNS))
     poses.insert(0, "scan", scans)
