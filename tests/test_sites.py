@@ -255,3 +255,14 @@ def test_parking_lot_and_straight_corridor_scenes():
     left = (np.abs(r.image.azimuth_deg - 90.0) < 2)[None, :] & (np.abs(
         r.image.elevation_deg) < 5)[:, None]
     assert not np.any(np.isclose(r.true_range_m[left], 1.125, atol=0.02))
+
+
+def test_pillar_surface_points_tell_seen_from_hidden_pillars():
+    from forestmap_assets.sim.site_eval import pillar_surface_points
+
+    pillars = pd.DataFrame({"x": [3.0, -4.0], "y": [0.0, 2.0], "radius_m": [0.192, 0.192]})
+    a = np.radians(np.linspace(120, 240, 200))  # the half of the first pillar facing the origin
+    seen = np.column_stack([3.0 + 0.192 * np.cos(a), 0.192 * np.sin(a), np.zeros_like(a)])
+    wall = np.column_stack([np.full(50, -4.6), np.linspace(1.5, 2.5, 50), np.zeros(50)])
+    counts = pillar_surface_points(np.vstack([seen, wall, [[np.nan] * 3]]), pillars)
+    assert counts.tolist() == [200, 0]

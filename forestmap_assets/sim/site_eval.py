@@ -105,6 +105,26 @@ def line_recall(
     return out
 
 
+def pillar_surface_points(points: np.ndarray, pillars: pd.DataFrame, *,
+                          tolerance_m: float = 0.05) -> np.ndarray:
+    """Per truth pillar (``x, y, radius_m``, frame of ``points``): how many of the scan's points
+    lie within ``tolerance_m`` of its surface, i.e. whether the scan sees it at all (a pillar in
+    range may stand round a corner or behind a wall)."""
+    xy = np.asarray(points, dtype=float).reshape(-1, 3)[:, :2]
+    xy = xy[np.isfinite(xy).all(1)]
+    if len(pillars) == 0 or len(xy) == 0:
+        return np.zeros(len(pillars), dtype=np.int64)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(xy)
+    out = []
+    for x, y, r in pillars[["x", "y", "radius_m"]].to_numpy(float):
+        idx = tree.query_ball_point([x, y], r + tolerance_m)
+        d = np.hypot(xy[idx, 0] - x, xy[idx, 1] - y)
+        out.append(int(np.sum(np.abs(d - r) <= tolerance_m)))
+    return np.asarray(out, dtype=np.int64)
+
+
 def pillar_detection(cylinders: pd.DataFrame, pillars: pd.DataFrame, *, match_m: float = 0.3,
                      max_range_m: float | None = None) -> pd.DataFrame:
     """Truth pillars (``x, y, radius_m``, frame of the cylinders) with the matched cylinders:
