@@ -144,6 +144,10 @@ class RegistrationParams(_Stage):
     min_support_m: float = 1.0
     max_rival_ratio: float | None = None
     rival_exclusion_m: float = 1.0
+    # (inferred; None: off) and reject a result whose coarse-to-fine history preferred an
+    # alignment farther than rival_exclusion_m with cells of at most history_max_cell_m (a
+    # secondary hypothesis that led late; Th. Fig. 5.8, core/pair_checks.assess_history)
+    history_max_cell_m: float | None = None
     max_cells: int = 60_000  # a level keeping more cells than this is reported as ambiguous
     # (inferred, opt-in) 'lattice': bound each cell over the final-lattice poses inside it (half the
     # CPU, same peak; its cloud keeps cells within lattice_margin log units of the best, so the
@@ -268,7 +272,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "submaps": {"cylinder_weight": 2},
         "cylinders": {"min_length_m": 0.3, "curvature_deg": 10.0},
         "registration": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156,
-                         "min_matched_stems": 3, "max_rival_ratio": 0.6},
+                         "min_matched_stems": 3, "max_rival_ratio": 0.6,
+                         "history_max_cell_m": 0.3},
     },
     "indoor": {
         "segmentation": {"min_width_m": 0.2},
@@ -286,7 +291,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "min_length_m": 2.0,
         },
         "registration": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195,
-                         "min_matched_stems": 2, "max_rival_ratio": 0.6},
+                         "min_matched_stems": 2, "max_rival_ratio": 0.6,
+                         "history_max_cell_m": 0.3},
     },
 }
 

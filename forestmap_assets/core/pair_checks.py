@@ -373,3 +373,78 @@ def judge_in_box(result, params, centre, half_widths, box_heading_deg: float = 0
     boxed.peak, boxed.final_step = frame["peak"], frame["final_step"]
     return judge(boxed, params, frame["centre"], half_widths, **kwargs)
 
+
+
+# ---- secondary hypotheses in the coarse-to-fine history (spec 6.5, Th. Figs 5.8-5.9) -----------
+HISTORY_COLUMNS = ["level", "cell_m", "dx", "dy", "dz", "dh_deg", "score", "peak_score_at_level",
+                   "separation_m", "level_mass_share"]
+
+
+def history_hypotheses(levels: pd.DataFrame, peak, *, separation_m: float = 1.0,
+                       max_cell_m: float = 0.3) -> pd.DataFrame:
+    """Levels of the branch and bound at which an alignment far from the final peak held the
+    best score (spec 6.5; Th. Figs 5.8-5.9: for pair 43 "the maximum-score location jumps
+    between hypotheses at coarse levels, and only one cloud survives below about 0.08 m").
+
+    ``levels``: every level's surviving cells (``register_pair(...).levels``: ``level, cell_m,
+    dx, dy, dz, dh_deg, score``). A level counts when its cells are at most ``max_cell_m`` and
+    its best-scoring cell lies more than ``separation_m`` (xy) from the final ``peak``; the row
+    gives that cell, the best score of the cells near the peak (``peak_score_at_level``), and
+    the leader's share of the two masses ``exp(s)`` at that level (>= 0.5: at that resolution
+    the search preferred the other alignment). Inferred thresholds: a wrong result's competitor
+    stays in the lead to finer cells than a correct result's (benchmarks/results.md,
+    "Structured sites"). Empty when no level qualifies."""
+    rows = []
+    if len(levels) == 0 or "score" not in levels:
+        return pd.DataFrame(columns=HISTORY_COLUMNS)
+    p = np.asarray(peak, dtype=float)
+    lv = levels[np.isfinite(levels["score"].to_numpy(float))]
+    lv = lv[lv["cell_m"].to_numpy(float) <= max_cell_m]
+    for level, g in lv.groupby("level", sort=True):
+        sep = np.hypot(g["dx"].to_numpy(float) - p[0], g["dy"].to_numpy(float) - p[1])
+        s = g["score"].to_numpy(float)
+        k = int(np.argmax(s))
+        if sep[k] <= separation_m:
+            continue
+        near = s[sep <= separation_m]
+        s_near = float(near.max()) if near.size else -np.inf
+        share = 1.0 / (1.0 + np.exp(min(s_near - s[k], 700.0)))
+        c = g.iloc[k]
+        rows.append({"level": int(level), "cell_m": float(c["cell_m"]), "dx": float(c["dx"]),
+                     "dy": float(c["dy"]), "dz": float(c["dz"]), "dh_deg": float(c["dh_deg"]),
+                     "score": float(s[k]), "peak_score_at_level": s_near,
+                     "separation_m": float(sep[k]), "level_mass_share": float(share)})
+    return pd.DataFrame(rows, columns=HISTORY_COLUMNS)
+
+
+def assess_history(levels: pd.DataFrame, peak, *, separation_m: float = 1.0,
+                   max_cell_m: float | None = 0.3) -> tuple[str, pd.DataFrame]:
+    """Reason to reject a registration whose coarse-to-fine history was contested ('' if none;
+    ``max_cell_m`` None: not checked) and the contested levels (:func:`history_hypotheses`)."""
+    if max_cell_m is None:
+        return "", pd.DataFrame(columns=HISTORY_COLUMNS)
+    hist = history_hypotheses(levels, peak, separation_m=separation_m, max_cell_m=max_cell_m)
+    if hist.empty:
+        return "", hist
+    last = hist.iloc[int(np.argmin(hist["cell_m"].to_numpy(float)))]
+    return (f"ambiguous: with {last['cell_m']:.2f} m cells the search preferred an alignment "
+            f"{last['separation_m']:.2f} m away (a secondary hypothesis of the coarse-to-fine "
+            f"history, Th. Fig. 5.8)"), hist
+
+
+def history_hypothesis_row(hist: pd.DataFrame, peak, d_bar_m: float) -> dict:
+    """The finest late leader of :func:`history_hypotheses` as a secondary-hypothesis row
+    (``registration.HYPOTHESIS_COLUMNS`` plus ``source``, ``level``, ``cell_m``): its cell at
+    that level (no cloud, so no sigmas), its share of that level's two masses as
+    ``mass_share``, and its separation from ``peak`` (xyz, heading as arc at ``d_bar_m``)."""
+    h = hist.iloc[int(np.argmin(hist["cell_m"].to_numpy(float)))]
+    pose = h[["dx", "dy", "dz", "dh_deg"]].to_numpy(float)
+    sep = pose - np.asarray(peak, dtype=float)
+    sep[3] = np.radians(wrap_deg(sep[3])) * d_bar_m
+    row = dict(zip(("peak_dx", "peak_dy", "peak_dz", "peak_dh_deg"), pose, strict=True))
+    row.update(dict(zip(("dx", "dy", "dz", "dh_deg"), pose, strict=True)))
+    row.update(peak_score=float(h["score"]), sd_x=np.nan, sd_y=np.nan, sd_z=np.nan,
+               sd_heading_deg=np.nan, n_cells=1, mass_share=float(h["level_mass_share"]),
+               separation_m=float(np.linalg.norm(sep)), source="coarse-to-fine history",
+               level=int(h["level"]), cell_m=float(h["cell_m"]))
+    return row
