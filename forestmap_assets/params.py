@@ -149,11 +149,12 @@ class RegistrationParams(_Stage):
     # secondary hypothesis that led late; Th. Fig. 5.8, core/pair_checks.assess_history)
     history_max_cell_m: float | None = None
     max_cells: int = 60_000  # a level keeping more cells than this is reported as ambiguous
-    # (inferred, opt-in) 'lattice': bound each cell over the final-lattice poses inside it (half the
-    # CPU, same peak; its cloud keeps cells within lattice_margin log units of the best, so the
-    # sigmas are not yet calibrated for it); 'cell': the rigorous continuous bound of spec 6.4
-    bound: Literal["cell", "lattice"] = "cell"
+    # (inferred) 'lattice': bound each cell over the final-lattice poses inside it (same peak,
+    # 2-3x less CPU; clouds grown to cloud_margin for the sigmas); 'cell': the continuous bound
+    # of spec 6.4 (the thesis method always uses it)
+    bound: Literal["cell", "lattice"] = "lattice"
     lattice_margin: float = 10.0
+    cloud_margin: float = 240.0  # (inferred) clouds of the JP eq. 6 / tempered sigmas, lattice bound
     min_matched_stems: int = 4  # (inferred) distinct features supporting an accepted result
     # (beyond the thesis, its spec 9 "future source"): dz of accepted pairs from the ground grids
     z_from_ground: bool = True

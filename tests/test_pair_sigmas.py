@@ -68,3 +68,37 @@ def test_observation_sigmas_tempered_axes_and_fallbacks():
     np.testing.assert_allclose(observation_sigmas(res, 2.0, None), old)
     res.levels = pd.DataFrame(columns=["level", "dx", "dy", "dz", "dh_deg", "score"])
     np.testing.assert_allclose(observation_sigmas(res, 2.0, 10.0), old)
+
+
+def test_ground_dz_gate_uses_the_feature_dz_sd(monkeypatch):
+    """The ground dz replaces the feature dz when they agree within ``3 sd + 0.1 m`` with the
+    feature dz's own sd (its cloud sd combined with ``feature_z_sd_m``): a tight cell cloud
+    (lattice bound) no longer refuses a ground dz 0.3 m from a feature dz that near-vertical
+    stems barely fix; a ground dz 1 m away is still refused."""
+    from forestmap_assets.core import pair_registrations as pr
+    from forestmap_assets.core.registration import RegistrationResult
+    from forestmap_assets.core.score import ScoreModel
+    from forestmap_assets.params import RegistrationParams
+
+    params = RegistrationParams(min_support_m=0.0, max_rival_ratio=None)
+    n = 200
+    result = RegistrationResult(
+        status="ok", peak=(0.0, 0.0, 0.0, 0.0), peak_score=n * ScoreModel().ln_p0,
+        centre=(0.0, 0.0, 0.0, 0.0), sigma=(0.005, 0.005, 0.004, 0.02), cloud_cells=3,
+        peak_mass_share=1.0, n_points=n, final_step=(0.02, 0.02, 0.02, 0.1), d_bar_m=5.0,
+        matched_stems=10)
+    monkeypatch.setattr(pr, "_register_one", lambda job: result)
+    k = np.arange(-50, 50)
+    ix, iy = (a.ravel() for a in np.meshgrid(k, k, indexing="ij"))
+    ref_grid = pd.DataFrame({"ix": ix, "iy": iy, "z": np.zeros(len(ix))})
+    cand = pd.DataFrame([dict(scan="B", reference="A", cx=0.0, cy=0.0, cz=0.0, cheading_deg=0.0,
+                              hx=5.0, hy=5.0, hz=1.25, hheading_deg=60.0, box_heading_deg=0.0)])
+    sub = {s: pd.DataFrame({"x": [0.0], "y": [0.0], "z": [0.0]}) for s in "AB"}
+    for offset, source in ((0.3, "ground"), (1.0, "features")):
+        scan_grid = ref_grid.assign(z=-offset)  # the scan's ground sits `offset` lower
+        out = pr.register_candidates(cand, sub, params, workers=1,
+                                     elevation={"A": ref_grid, "B": scan_grid})
+        row = out["registrations"].iloc[0]
+        assert row["status"] == "accepted" and row["z_source"].startswith(source)
+        want = offset if source == "ground" else 0.0
+        assert row["dz"] == pytest.approx(want, abs=1e-9)

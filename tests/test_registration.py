@@ -117,7 +117,12 @@ def test_stem_layout_from_poor_prior():
     assert r.sigma[2] > r.sigma[0]  # vertical stems constrain z weakly (spec 6.5)
     assert set(r.levels.level) == set(range(r.levels.level.max() + 1))
     final = r.levels[r.levels.level == r.levels.level.max()]
-    assert len(final) >= r.cloud_cells and (final.bound >= r.peak_score - 1e-6).all()
+    # lattice bound (default): a final cell's bound is (a table-rounded upper bound of) its
+    # score; the best cell's cloud is grown to every connected lattice cell within cloud_margin
+    # (240) of the best
+    assert len(final) >= r.cloud_cells > 1
+    assert (final.bound >= final.score - 1e-6).all()
+    assert (final.score >= r.peak_score - 240.0 - 1e-6).all() and final.score.max() == r.peak_score
     assert 0 < r.peak_mass_share <= 1
 
 
@@ -266,3 +271,71 @@ def test_reference_field_is_reused_for_the_same_reference():
     moved[0, 0] += 1e-6
     assert reference_field(moved, model) is not a
     assert reference_field(ref, ScoreModel(sigma_m=0.05)) is not a
+
+
+def test_asymmetric_box_and_parent_terms_bound_the_scores():
+    """The per-axis bound over an asymmetric offset box (the lattice bound's cells) dominates
+    the exact score at every pose in the box, also when it is tightened by (and stopped early
+    on) the parent cell's per-point terms."""
+    rng = np.random.default_rng(5)
+    ref = rng.uniform(-3, 3, (300, 3))
+    scan = ref[:150] + rng.normal(0, 0.02, (150, 3))
+    model = ScoreModel()
+    field = ReferenceField(ref, model)
+    kd = _KdEvaluator(ref, model)
+    n = len(scan)
+    d_xy = np.hypot(scan[:, 0], scan[:, 1])
+    root_off, root_idx = np.array([0, n], np.int64), np.arange(n, dtype=np.int32)
+    for _ in range(10):
+        c = np.r_[rng.normal(0, 0.03, 3), rng.normal(0, 0.01)]
+        e = rng.uniform(0.005, 0.06, 4) * np.array([1, 1, 1, 0.2])
+        lo = -e * rng.uniform(0, 1, 4)
+        hi = e * rng.uniform(0, 1, 4)
+        # parent: the symmetric box +-e, then the child: [lo, hi] (inside it)
+        b_p, _, off_p, cnt_p, live_p, t_p = field.eval_live(
+            c[None], np.zeros(1, np.int64), root_off, root_idx, scan, d_xy, e, True, lo=-e, hi=e)
+        off_p = np.r_[0, np.cumsum(cnt_p)].astype(np.int64)
+        b, s, *_ = field.eval_live(c[None], np.zeros(1, np.int64), off_p, live_p[:cnt_p[0]],
+                                   scan, d_xy, e, True, lo=lo, hi=hi, par_terms=t_p[:cnt_p[0]],
+                                   par_bound=b_p)
+        inside = c + lo + rng.uniform(0, 1, (400, 4)) * (hi - lo)
+        inside = np.vstack([inside, c + lo, c + hi])
+        s_in, _ = kd(inside, scan, np.zeros(n), bound=False)
+        assert s_in.max() <= b[0] + 1e-9 and b[0] <= b_p[0] + 1e-9
+        # early stop: with a threshold above the bound the cell is reported below it
+        b_stop, s_stop, *_ = field.eval_live(
+            c[None], np.zeros(1, np.int64), off_p, live_p[:cnt_p[0]], scan, d_xy, e, True, lo=lo,
+            hi=hi, par_terms=t_p[:cnt_p[0]], par_bound=b_p, thresh=b[0] + 1.0)
+        assert b_stop[0] < b[0] + 1.0 and b_stop[0] >= s_in.max() - 1e-9
+
+
+def test_lattice_search_grows_the_cloud_and_keeps_the_maximum():
+    """bound='lattice': the lattice maximum of exhaustive search, with the heading halved by
+    the thesis rule or earlier (``heading_split_scale``); the final cloud holds every lattice
+    cell connected to the peak (80 neighbours) that scores within ``cloud_margin`` of it."""
+    from forestmap_assets.core.registration import lattice_components
+
+    rng = np.random.default_rng(1)
+    scan, ref = _small_problem(rng, "plain")
+    params = RegistrationParams(final_cell_m=0.05)
+    box, centre = (0.2, 0.2, 0.1, 10.0), (0.0, 0.0, 0.0, 0.0)
+    poses, scores = exhaustive_search(scan, ref, centre, box, params)
+    d_bar = float(np.mean(np.hypot(scan[:, 0], scan[:, 1])))
+    lat = SearchLattice.build(centre, box, params.final_cell_m, d_bar)
+    idx = np.array(np.meshgrid(*[np.arange(v) for v in lat.n], indexing="ij")).reshape(4, -1).T
+    margin = 60.0
+    near = scores >= scores.max() - margin
+    _, lab = lattice_components(idx[near], lat.n, lat.wrap, 80)
+    peak_comp = lab[int(np.argmax(scores[near]))]
+    want = poses[near][lab == peak_comp]
+    for split in (1.0, 2.0):
+        r = register_pair(scan, ref, centre, box, params, bound="lattice", cloud_margin=margin,
+                          heading_split_scale=split)
+        assert np.isclose(r.peak_score, scores.max(), rtol=1e-10, atol=1e-9)
+        last = r.levels[r.levels.level == r.levels.level.max()]
+        got = last[["dx", "dy", "dz", "dh_deg"]].to_numpy()
+        for q in want:
+            d = np.abs(got - q)
+            d[:, 3] = np.minimum(d[:, 3], 360 - d[:, 3])
+            assert d.sum(1).min() < 1e-6
+        assert r.cloud_cells >= len(want)

@@ -335,3 +335,24 @@ def test_coarse_to_fine_history_keeps_a_late_leader_as_a_secondary_hypothesis():
     assert history_hypotheses(calm, peak).empty
     assert assess_history(levels, peak, max_cell_m=None)[0] == ""
 
+
+
+def test_pipeline_registrations_carry_the_coarse_to_fine_hypothesis():
+    """The one-wall pair 87 through register_candidates with the indoor preset: the sliding
+    alignment led late in the search, so the hypotheses table holds it and the pair is not
+    admitted."""
+    from forestmap_assets.core.candidates import candidate_pairs
+    from forestmap_assets.core.pair_registrations import register_candidates
+
+    a = _submap((0, 0), lines=[(-6, 1.2, 6, 1.2)], seed=1)
+    b = _submap((8, 0), lines=[(5, -1.2, 9, -1.2)], seed=2)
+    params = REG.model_copy(update={"method": METHOD, "z_from_ground": False})
+    cand = candidate_pairs(["7", "8"], pairs=[("8", "7", (8.0, 0.0, 0.0, 0.0))],
+                           search=(params.xy_m, params.z_m, params.heading_deg))
+    out = register_candidates(cand, {"7": a, "8": b}, params, workers=1)
+    reg, hyp = out["registrations"].iloc[0], out["hypotheses"]
+    assert reg["status"] == "rejected"
+    late = hyp[hyp["source"] == "coarse-to-fine history"]
+    assert len(late) == 1 and reg["n_hypotheses"] >= 1
+    assert late["cell_m"].iloc[0] <= params.history_max_cell_m and late["separation_m"].iloc[0] > 1
+    assert reg["peak_mass_share"] <= 1.0 - late["mass_share"].iloc[0] + 1e-12

@@ -185,9 +185,10 @@ def _register_one(args):
                              s_floor=params.s_floor, adjacency=params.adjacency,
                              hypothesis_separation_m=params.hypothesis_separation_m,
                              max_cells=params.max_cells,
-                             # proposed RegistrationParams fields (issue 4); defaults until added
-                             bound=getattr(params, "bound", "cell"),
-                             lattice_margin=getattr(params, "lattice_margin", 10.0))
+                             # the lattice bound needs the fast evaluator
+                             bound=params.bound if params.method == "fast" else "cell",
+                             lattice_margin=params.lattice_margin,
+                             cloud_margin=params.cloud_margin)
     result.seconds = time.perf_counter() - t0
     return result
 
@@ -216,7 +217,8 @@ def register_candidates(
 
     With ``params.z_from_ground`` and the scans' lowest-hit ``elevation`` grids, an accepted
     registration's dz and its sigma come from the ground (:mod:`.ground_z`) when the ground
-    agrees with the feature-based cloud within ``3 sd + 0.1 m``; the feature-based values are
+    agrees with the feature-based dz within ``3 sd + 0.1 m`` (``sd``: the feature dz's sd, its
+    cloud sd combined with ``feature_z_sd_m``); the feature-based values are
     kept in ``dz_features``/``sd_z_features`` and ``z_source`` says which was used.
     """
     jobs = []
@@ -241,7 +243,7 @@ def register_candidates(
             if progress:
                 progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {results[-1].seconds:.1f} s")
 
-    from .pair_checks import assess_pair, judge_in_box
+    from .pair_checks import assess_history, assess_pair, history_hypothesis_row, judge_in_box
 
     rows, levels, hyps = [], [], []
     for c, job, res in zip(candidates.itertuples(index=False), jobs, results, strict=True):
@@ -256,6 +258,18 @@ def register_candidates(
             extra.update(figures)
             if why:
                 status, reason = "rejected", why
+        hyp = res.hypotheses.assign(source="branch and bound") if len(res.hypotheses) else None
+        if res.status == "ok" and params.history_max_cell_m is not None:
+            why, hist = assess_history(res.levels, res.peak, separation_m=params.rival_exclusion_m,
+                                       max_cell_m=params.history_max_cell_m)
+            if len(hist):  # the finest late leader becomes a secondary hypothesis (spec 6.5, 8.6)
+                row = history_hypothesis_row(hist, res.peak, res.d_bar_m)
+                hyp = pd.concat([h for h in (hyp, pd.DataFrame([row])) if h is not None],
+                                ignore_index=True)
+                extra["n_hypotheses"] = len(hyp)
+                extra["peak_mass_share"] = min(extra["peak_mass_share"], 1.0 - row["mass_share"])
+                if status == "accepted":
+                    status, reason = "rejected", why
         sd = (observation_sigmas(res, sigma_scale, likelihood_temperature,
                                  params.hypothesis_separation_m,
                                  heading_temperature=heading_temperature)
@@ -269,7 +283,9 @@ def register_candidates(
 
             g = ground_dz(elevation.get(c.scan), elevation.get(c.reference), centre, elevation_cell_m,
                           min_sd_m=ground_min_sd_m)
-            gate = observation_sigmas(res, sigma_scale, None)[2]  # JP eq. 6, as before
+            # the feature dz's own sd (cloud sd with feature_z_sd_m in quadrature): the cloud
+            # alone shrinks to a few cells with the lattice bound and refused a correct ground dz
+            gate = sd[2]
             if g.ok and abs(g.dz - centre[2]) <= 3 * gate + 0.1:
                 centre[2], sd[2] = g.dz, g.sd
                 extra["z_source"] = f"ground ({g.n_cells} cells)"
@@ -285,8 +301,8 @@ def register_candidates(
         })
         if len(res.levels):
             levels.append(res.levels.assign(scan=c.scan, reference=c.reference))
-        if len(res.hypotheses):
-            hyps.append(res.hypotheses.assign(scan=c.scan, reference=c.reference))
+        if hyp is not None:
+            hyps.append(hyp.assign(scan=c.scan, reference=c.reference))
     regs = pd.DataFrame(rows, columns=REGISTRATION_COLUMNS + EXTRA_COLUMNS)
     return {
         "registrations": regs,

@@ -22,7 +22,13 @@ distances (an upper bound), and the "quick" score from a table rounded towards l
 **Live points** (inferred, exact): a point whose bound term is ``ln k1`` over a cell (its lower
 distance bound is ``>= cap`` everywhere in the cell) contributes exactly ``ln k1`` to the score
 and the bound of every sub-cell, so :func:`eval_live` evaluates each cell only on the points
-still live in its parent and returns the child's own live list. Kernels are compiled with numba.
+still live in its parent and returns the child's own live list. With an offset box ``[lo, hi]``
+(:func:`_eval_live_box`, inferred, exact) the per-axis bound uses the cell's exact asymmetric
+box (the lattice bound's cells hold the lattice points ``-(size // 2) .. size - 1 - size // 2``
+steps about their pose) and the per-axis range of each point's rotation displacement, keeps
+each point's term no larger than its term in the parent cell, and stops a cell early once the
+parent's bound minus the drops so far falls below the best score. Kernels are compiled with
+numba.
 """
 
 from __future__ import annotations
@@ -91,12 +97,13 @@ def _slot(ix, iy, iz, bmap, nb_shape):
 
 
 @nb.njit(cache=True)
-def _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, mode, count, idx, fill, margin):
-    """One pass over the voxels within ``cap`` of each point: mode 0 sets ``ub``, mode 1 counts
-    candidates, mode 2 writes them."""
+def _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, mode, count, idx, fill, margin,
+           p_start, p_end):
+    """One pass over the voxels within ``cap`` of each point ``p_start <= p < p_end``: mode 0
+    lowers ``ub``, mode 1 counts candidates, mode 2 writes them."""
     r = int(math.ceil(cap / s)) + 1
     lo = np.empty(3)
-    for p in range(ref.shape[0]):
+    for p in range(p_start, p_end):
         a = ref[p]
         cx = int((a[0] - origin[0]) / s)
         cy = int((a[1] - origin[1]) / s)
@@ -122,21 +129,48 @@ def _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, mode, count, idx, fil
                             fill[v] += 1
 
 
-@nb.njit(cache=True)
-def _build_candidates(ref, origin, s, shape, nb_shape, bmap, n_blocks, cap, margin):
-    """CSR candidate lists per stored fine voxel (see module docstring)."""
+@nb.njit(cache=True, parallel=True)
+def _build_candidates(ref, origin, s, shape, nb_shape, bmap, n_blocks, cap, margin, n_parts):
+    """CSR candidate lists per stored fine voxel (see module docstring), the points split into
+    ``n_parts`` consecutive ranges stamped in parallel (same lists, same order as one pass)."""
     nvox = n_blocks * 512
-    ub = np.full(nvox, np.inf)
-    count = np.zeros(nvox + 1, np.int64)
+    n = ref.shape[0]
+    cut = np.empty(n_parts + 1, np.int64)
+    for t in range(n_parts + 1):
+        cut[t] = (n * t) // n_parts
+    ubs = np.full((n_parts, nvox), np.inf)
+    counts = np.zeros((n_parts, nvox + 1), np.int64)
     idx = np.empty(0, np.int32)
     fill = np.empty(0, np.int64)
-    _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, 0, count, idx, fill, margin)
-    _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, 1, count, idx, fill, margin)
+    for t in nb.prange(n_parts):
+        _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ubs[t], 0, counts[t], idx, fill,
+               margin, cut[t], cut[t + 1])
+    ub = np.empty(nvox)
+    for v in nb.prange(nvox):
+        m = np.inf
+        for t in range(n_parts):
+            m = min(m, ubs[t, v])
+        ub[v] = m
+    for t in nb.prange(n_parts):
+        _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, 1, counts[t], idx, fill,
+               margin, cut[t], cut[t + 1])
+    count = np.zeros(nvox + 1, np.int64)
     for v in range(nvox):
-        count[v + 1] += count[v]
-    fill = count[:-1].copy()
+        tot = 0
+        for t in range(n_parts):
+            tot += counts[t, v + 1]
+        count[v + 1] = count[v] + tot
+    # each part writes after the earlier parts' candidates of the same voxel
+    fills = np.empty((n_parts, nvox), np.int64)
+    for v in nb.prange(nvox):
+        f = count[v]
+        for t in range(n_parts):
+            fills[t, v] = f
+            f += counts[t, v + 1]
     idx = np.empty(count[nvox], np.int32)
-    _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, 2, count, idx, fill, margin)
+    for t in nb.prange(n_parts):
+        _stamp(ref, origin, s, shape, nb_shape, bmap, cap, ub, 2, counts[t], idx, fills[t],
+               margin, cut[t], cut[t + 1])
     return count, idx, np.minimum(ub + margin, cap).astype(np.float32)
 
 
@@ -240,6 +274,44 @@ def _nearest_box(qx, qy, qz, lip, ex, ey, ez, ref, f_origin, f_s, f_shape, nb_sh
         gx = max(dx - ex, 0.0)
         gy = max(dy - ey, 0.0)
         gz = max(dz - ez, 0.0)
+        g2 = gx * gx + gy * gy + gz * gz
+        if g2 < boxb:
+            boxb = g2
+    d = math.sqrt(best)
+    if d > cap:
+        return np.inf, np.inf
+    low = d - lip
+    if d + 2.0 * lip <= ub[v]:
+        low = max(low, math.sqrt(boxb))
+    return d, low
+
+
+@nb.njit(cache=True, inline="always", fastmath=_FAST)
+def _nearest_abox(qx, qy, qz, lip, lx, hx, ly, hy, lz, hz, ref, f_origin, f_s, f_shape,
+                  nb_shape, bmap, cand_off, cand_idx, ub, cap):
+    """:func:`_nearest_box` over the asymmetric displacement box ``u_a in [l_a, h_a]``
+    (``l <= 0 <= h``, ``|u| <= lip``)."""
+    ix = int(math.floor((qx - f_origin[0]) / f_s))
+    iy = int(math.floor((qy - f_origin[1]) / f_s))
+    iz = int(math.floor((qz - f_origin[2]) / f_s))
+    if ix < 0 or iy < 0 or iz < 0 or ix >= f_shape[0] or iy >= f_shape[1] or iz >= f_shape[2]:
+        return np.inf, np.inf
+    v = _slot(ix, iy, iz, bmap, nb_shape)
+    if v < 0:
+        return np.inf, np.inf
+    best = np.inf
+    boxb = np.inf
+    for c in range(cand_off[v], cand_off[v + 1]):
+        j = cand_idx[c]
+        dx = ref[j, 0] - qx
+        dy = ref[j, 1] - qy
+        dz = ref[j, 2] - qz
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < best:
+            best = d2
+        gx = max(dx - hx, lx - dx, 0.0)
+        gy = max(dy - hy, ly - dy, 0.0)
+        gz = max(dz - hz, lz - dz, 0.0)
         g2 = gx * gx + gy * gy + gz * gz
         if g2 < boxb:
             boxb = g2
@@ -416,6 +488,94 @@ def _eval_live(
 
 
 @nb.njit(cache=True, parallel=True, fastmath=_FAST)
+def _eval_live_box(
+    poses, parent, live_off, live_idx, n_total, pts, d_xy, t_ext, chord, box_max,
+    lo, hi, s_lo, s_hi, eps_fac, par_terms, par_bound, thresh,
+    ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, ub, cap,
+    c_origin, c_s, c_shape, lb, bb_lo, bb_hi,
+    ln_k1, table_hi, table_lo, inv_step,
+    out_bound, out_score, out_off, out_cnt, out_live, out_terms,
+):
+    """:func:`_eval_live` over the asymmetric offset box ``[lo, hi]`` (dx, dy, dz, dh about each
+    cell's pose): the per-axis bound of a point uses the exact per-axis range of its displacement
+    ``t + (cos a - 1) p + sin a J p`` (``p`` the rotated point, ``sin a`` in ``[s_lo, s_hi]``,
+    ``1 - cos a <= eps_fac``) instead of a symmetric box widened by the rotation chord.
+
+    Parent terms (inferred, exact): a point's bound term over the parent cell (``par_terms``,
+    aligned with ``live_idx``) also bounds it over the child, so the child keeps the smaller of
+    the two (``out_terms``, aligned with ``out_live``), and ``R = par_bound - sum (parent term
+    - child term)`` over the points done so far bounds the child: once ``R < thresh`` the cell
+    is pruned without its remaining points (bound ``R``, score ``-inf``)."""
+    n_cells = poses.shape[0]
+    nt = table_hi.shape[0]
+    for c in nb.prange(n_cells):
+        p = parent[c]
+        ch = math.cos(poses[c, 3])
+        sh = math.sin(poses[c, 3])
+        tx, ty, tz = poses[c, 0], poses[c, 1], poses[c, 2]
+        n_live = live_off[p + 1] - live_off[p]
+        dead = n_total - n_live
+        s_acc = dead * ln_k1
+        b_acc = dead * ln_k1
+        rem = par_bound[p]
+        stopped = False
+        w = out_off[c]
+        for k in range(live_off[p], live_off[p + 1]):
+            if rem < thresh:
+                stopped = True
+                break
+            tp = par_terms[k]
+            i = live_idx[k]
+            px = ch * pts[i, 0] - sh * pts[i, 1]
+            py = sh * pts[i, 0] + ch * pts[i, 1]
+            qx = px + tx
+            qy = py + ty
+            qz = pts[i, 2] + tz
+            delta = t_ext + chord * d_xy[i]
+            if delta <= box_max:
+                epx = eps_fac * px
+                epy = eps_fac * py
+                rx_lo = min(-py * s_lo, -py * s_hi) + min(0.0, -epx)
+                rx_hi = max(-py * s_lo, -py * s_hi) + max(0.0, -epx)
+                ry_lo = min(px * s_lo, px * s_hi) + min(0.0, -epy)
+                ry_hi = max(px * s_lo, px * s_hi) + max(0.0, -epy)
+                d, r = _nearest_abox(qx, qy, qz, delta, lo[0] + rx_lo, hi[0] + rx_hi,
+                                     lo[1] + ry_lo, hi[1] + ry_hi, lo[2], hi[2], ref, f_origin,
+                                     f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, ub, cap)
+            else:
+                d = _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off,
+                             cand_idx, cap)
+                r = d - delta
+            if d > cap:
+                s_acc += ln_k1
+                r = max(cap, _coarse_lower(qx, qy, qz, c_origin, c_s, c_shape, lb, bb_lo, bb_hi))
+                r -= delta
+            else:
+                s_acc += table_lo[min(int(d * inv_step) + 1, nt - 1)]
+            if r >= cap:
+                b_acc += ln_k1
+                rem -= tp - ln_k1
+                continue
+            if r <= 0.0:
+                term = table_hi[0]
+            else:
+                term = table_hi[min(int(r * inv_step), nt - 1)]
+            term = min(term, tp)
+            out_live[w] = i
+            out_terms[w] = term
+            w += 1
+            b_acc += term
+            rem -= tp - term
+        out_cnt[c] = w - out_off[c]
+        if stopped:
+            out_bound[c] = rem
+            out_score[c] = -np.inf
+        else:
+            out_bound[c] = b_acc
+            out_score[c] = s_acc
+
+
+@nb.njit(cache=True, parallel=True, fastmath=_FAST)
 def _exact_live(
     poses, live_off, live_idx, n_total, pts,
     ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cap,
@@ -497,7 +657,7 @@ class ReferenceField:
         self.bmap, self.n_blocks = _mark_blocks(ref, self.f_origin, self.f_s, self.nb_shape, self.cap)
         self.cand_off, self.cand_idx, self.ub = _build_candidates(
             ref, self.f_origin, self.f_s, self.f_shape, self.nb_shape, self.bmap, self.n_blocks,
-            self.cap, float(list_margin_m),
+            self.cap, float(list_margin_m), max(1, min(nb.get_num_threads(), len(ref) // 500)),
         )
         self.b_off, self.b_idx = _build_buckets(
             ref, self.f_origin, self.f_s, self.nb_shape, self.bmap, self.n_blocks
@@ -574,12 +734,20 @@ class ReferenceField:
         )
         return out_s, out_b
 
-    def eval_live(self, poses, parent, live_off, live_idx, pts, d_xy, e, tight: bool):
+    def eval_live(self, poses, parent, live_off, live_idx, pts, d_xy, e, tight: bool,
+                  lo=None, hi=None, par_terms=None, par_bound=None, thresh=-np.inf):
         """Cells ``poses`` (radians) with largest offsets ``e`` (4,) to their faces, each
         evaluated on the live points of ``parent`` (CSR ``live_off``/``live_idx``).
 
         Returns (bound, quick score lower bound, child live CSR offsets, child live points).
-        ``tight`` enables the per-axis bound for displacements up to ``box_max_m``."""
+        ``tight`` enables the per-axis bound for displacements up to ``box_max_m``, over the
+        asymmetric offset box ``[lo, hi]`` (4,: dx, dy, dz m, dh rad about each pose, within
+        ``+-e``) when given (:func:`_eval_live_box`; then also ``par_terms``/``par_bound``/
+        ``thresh``, the parent terms and early stop there, and a sixth result, the child live
+        points' terms)."""
+        if tight and lo is not None:
+            return self._eval_live_box(poses, parent, live_off, live_idx, pts, d_xy, e, lo, hi,
+                                       par_terms, par_bound, thresh)
         n_cells = len(poses)
         counts = np.diff(live_off)[parent]
         out_off = np.zeros(n_cells + 1, np.int64)
@@ -601,6 +769,45 @@ class ReferenceField:
             out_b, out_s, out_off, out_cnt, out_live,
         )
         return out_b, out_s, out_off, out_cnt, out_live
+
+    def _eval_live_box(self, poses, parent, live_off, live_idx, pts, d_xy, e, lo, hi,
+                       par_terms=None, par_bound=None, thresh=-np.inf):
+        e = np.asarray(e, dtype=np.float64)
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        if np.any(lo > 1e-12) or np.any(hi < -1e-12) or np.any(np.maximum(-lo, hi) > e + 1e-12):
+            raise ValueError("eval_live: the offset box [lo, hi] must hold 0 and lie within +-e")
+        n_cells = len(poses)
+        counts = np.diff(live_off)[parent]
+        out_off = np.zeros(n_cells + 1, np.int64)
+        np.cumsum(counts, out=out_off[1:])
+        out_live = np.empty(int(out_off[-1]), np.int32)
+        out_cnt = np.zeros(n_cells, np.int64)
+        out_b = np.empty(n_cells)
+        out_s = np.empty(n_cells)
+        t_ext = float(np.sqrt(np.sum(e[:3] ** 2)))
+        a_max = min(float(e[3]), np.pi)
+        chord = 2.0 * np.sin(a_max / 2.0)
+        # range of sin a over [lo_h, hi_h] (lo_h <= 0 <= hi_h; sin rises on [-pi/2, pi/2]) and
+        # the largest 1 - cos a
+        s_lo = -1.0 if lo[3] <= -np.pi / 2 else float(np.sin(lo[3]))
+        s_hi = 1.0 if hi[3] >= np.pi / 2 else float(np.sin(hi[3]))
+        eps_fac = float(1.0 - np.cos(a_max))
+        if par_terms is None:
+            par_terms = np.full(len(live_idx), np.inf)
+            par_bound = np.full(len(live_off) - 1, np.inf)
+        out_t = np.empty(len(out_live))
+        m = self.model
+        _eval_live_box(
+            np.ascontiguousarray(poses, dtype=np.float64), parent.astype(np.int64), live_off,
+            live_idx, len(pts), pts, d_xy, t_ext, chord, self.box_max_m, lo, hi, s_lo, s_hi,
+            eps_fac, par_terms, np.asarray(par_bound, dtype=np.float64), float(thresh),
+            *self._geo(), self.ub, self.cap,
+            self.c_origin, self.c_s, self.c_shape, self.lb, self.bb_lo, self.bb_hi,
+            m.ln_k1, self.table, self.table, 1.0 / self.table_step,
+            out_b, out_s, out_off, out_cnt, out_live, out_t,
+        )
+        return out_b, out_s, out_off, out_cnt, out_live, out_t
 
     def exact_live(self, poses, live_off, live_idx, pts) -> np.ndarray:
         """Exact scores of cells at ``poses`` from their own live lists."""
