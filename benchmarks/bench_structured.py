@@ -475,8 +475,9 @@ def refined(folder: Path, table: pd.DataFrame, fresh: bool, tag: str) -> pd.Data
             clouds[sid] = (img.xyz[img.valid], None)
         return refine_registrations(regs, clouds, refine_settings(camp), progress=print)
 
-    acc = regs.loc[regs["status"] == "accepted", ["scan", "reference"]].to_numpy().tolist()
-    key = hashlib.blake2b(repr(acc).encode(), digest_size=4).hexdigest()  # the refined links
+    acc = regs.loc[regs["status"] == "accepted", ["scan", "reference", "dx", "dy", "dz",
+                                                   "dheading_deg"]].to_numpy().tolist()
+    key = hashlib.blake2b(repr(acc).encode(), digest_size=4).hexdigest()  # links and starts
     out = _cached(f"refined_{folder.name}_{tag}_{key}", fresh, make)["registrations"]
     out["status"] = table["status"].to_numpy()
     truth = pd.read_csv(folder / "truth" / "poses.csv", dtype={"scan": str})
