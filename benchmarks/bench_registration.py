@@ -57,6 +57,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).parent))
 
 from forest_pairs import (  # noqa: E402
+    benchmark_box,
     campaign_elevation,
     campaign_pairs,
     campaign_submap_tables,
@@ -227,15 +228,7 @@ def run(n_box=8, n_noprior=5, n_low=3, cache=Path("/tmp/forestmap_bench_registra
     # the thesis's cell bound (register_pair(bound='cell')) on the same pairs and boxes
     cell_params = params.model_copy(update={"bound": "cell"})
     for case, camp, name, pb, pa, gb, ga, truth, shared in jobs:
-        if case == "forest box":
-            ang = rng.uniform(0, 2 * np.pi)
-            centre = np.asarray(truth) + np.array([4.5 * np.cos(ang), 4.5 * np.sin(ang),
-                                                   rng.uniform(-0.3, 0.3),
-                                                   32.0 * rng.choice([-1, 1])])
-            half = (5.0, 5.0, 1.25, 60.0)
-        else:
-            reach = min(np.hypot(pa.x, pa.y).max(), np.hypot(pb.x, pb.y).max(), params.max_xy_m)
-            centre, half = np.zeros(4), (reach, reach, 1.25, 180.0)
+        centre, half = benchmark_box(case == "forest box", truth, pa, pb, rng, params.max_xy_m)
         for label, prm in ((case, params), (f"{case}, cell bound", cell_params)):
             rows.append(_score_pair(label, camp, name, pb, pa, gb, ga, truth, shared, centre,
                                     half, prm, cell_m))

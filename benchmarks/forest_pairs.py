@@ -166,3 +166,19 @@ def campaign_elevation(folder: Path, progress=print) -> dict[str, pd.DataFrame]:
         progress(f"  {folder.name}/{entry.id}: {len(out[entry.id])} elevation cells")
     np.savez(cache, **{f"{s}/{c}": t[c].to_numpy() for s, t in out.items() for c in cols})
     return out
+
+
+def benchmark_box(forest_box: bool, truth, pa: pd.DataFrame, pb: pd.DataFrame, rng,
+                  max_xy_m: float):
+    """Search box (centre, half-widths) of a benchmark pair: the forest box (issue 4: +-5 m,
+    +-1.25 m, +-60 deg) centred 4.5 m and 32 deg off the truth (the thesis's worst a priori
+    errors), or the no-prior box (full heading circle, xy out to the shorter sub-map reach,
+    at most ``max_xy_m``)."""
+    if forest_box:
+        ang = rng.uniform(0, 2 * np.pi)
+        centre = np.asarray(truth) + np.array([4.5 * np.cos(ang), 4.5 * np.sin(ang),
+                                               rng.uniform(-0.3, 0.3),
+                                               32.0 * rng.choice([-1, 1])])
+        return centre, (5.0, 5.0, 1.25, 60.0)
+    reach = min(np.hypot(pa.x, pa.y).max(), np.hypot(pb.x, pb.y).max(), max_xy_m)
+    return np.zeros(4), (reach, reach, 1.25, 180.0)

@@ -25,7 +25,11 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).parent))
 
 from bench_registration import choose_pairs, ensure_campaigns, low_overlap_jobs  # noqa: E402
-from forest_pairs import campaign_elevation, campaign_submap_tables  # noqa: E402
+from forest_pairs import (  # noqa: E402
+    benchmark_box,
+    campaign_elevation,
+    campaign_submap_tables,
+)
 
 from forestmap_assets.core import registration  # noqa: E402
 from forestmap_assets.core.registration import register_pair  # noqa: E402
@@ -51,15 +55,7 @@ def benchmark_jobs(cache: Path, n_box=8, n_noprior=5, n_low=3):
         jobs.append(("low", j[0], j[1], j[2], j[3], j[6]))
     out = []
     for case, camp, name, pb, pa, truth in jobs:
-        if case == "box":
-            ang = rng.uniform(0, 2 * np.pi)
-            centre = np.asarray(truth) + np.array([4.5 * np.cos(ang), 4.5 * np.sin(ang),
-                                                   rng.uniform(-0.3, 0.3),
-                                                   32.0 * rng.choice([-1, 1])])
-            half = (5.0, 5.0, 1.25, 60.0)
-        else:
-            reach = min(np.hypot(pa.x, pa.y).max(), np.hypot(pb.x, pb.y).max(), params.max_xy_m)
-            centre, half = np.zeros(4), (reach, reach, 1.25, 180.0)
+        centre, half = benchmark_box(case == "box", truth, pa, pb, rng, params.max_xy_m)
         xyz = lambda t: t[["x", "y", "z"]].to_numpy(float)  # noqa: E731
         out.append((case, camp, name, xyz(pb), xyz(pa), tuple(centre), half, truth))
     return out

@@ -245,52 +245,10 @@ def _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, 
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FAST)
-def _nearest_box(qx, qy, qz, lip, ex, ey, ez, ref, f_origin, f_s, f_shape, nb_shape, bmap,
-                 cand_off, cand_idx, ub, cap):
-    """Exact nearest distance ``d`` (``inf`` beyond ``cap``) and, in the same candidate loop, a
-    lower bound of the nearest distance over the displacement box ``|p - q|_a <= (ex, ey, ez)``,
-    ``|p - q| <= lip`` (spec 6.4 "tighter bound", inferred form). Points farther than
-    ``rho = d + 2 lip`` from ``q`` cannot be nearest anywhere in the box; when ``rho <= ub_v``
-    they are all candidates of ``q``'s voxel, so the per-axis bound over the candidates is
-    rigorous; otherwise the Lipschitz bound ``d - lip`` is returned."""
-    ix = int(math.floor((qx - f_origin[0]) / f_s))
-    iy = int(math.floor((qy - f_origin[1]) / f_s))
-    iz = int(math.floor((qz - f_origin[2]) / f_s))
-    if ix < 0 or iy < 0 or iz < 0 or ix >= f_shape[0] or iy >= f_shape[1] or iz >= f_shape[2]:
-        return np.inf, np.inf
-    v = _slot(ix, iy, iz, bmap, nb_shape)
-    if v < 0:
-        return np.inf, np.inf
-    best = np.inf
-    boxb = np.inf
-    for c in range(cand_off[v], cand_off[v + 1]):
-        j = cand_idx[c]
-        dx = abs(qx - ref[j, 0])
-        dy = abs(qy - ref[j, 1])
-        dz = abs(qz - ref[j, 2])
-        d2 = dx * dx + dy * dy + dz * dz
-        if d2 < best:
-            best = d2
-        gx = max(dx - ex, 0.0)
-        gy = max(dy - ey, 0.0)
-        gz = max(dz - ez, 0.0)
-        g2 = gx * gx + gy * gy + gz * gz
-        if g2 < boxb:
-            boxb = g2
-    d = math.sqrt(best)
-    if d > cap:
-        return np.inf, np.inf
-    low = d - lip
-    if d + 2.0 * lip <= ub[v]:
-        low = max(low, math.sqrt(boxb))
-    return d, low
-
-
-@nb.njit(cache=True, inline="always", fastmath=_FAST)
 def _nearest_abox(qx, qy, qz, lip, lx, hx, ly, hy, lz, hz, ref, f_origin, f_s, f_shape,
                   nb_shape, bmap, cand_off, cand_idx, ub, cap):
     """:func:`_nearest_box` over the asymmetric displacement box ``u_a in [l_a, h_a]``
-    (``l <= 0 <= h``, ``|u| <= lip``)."""
+    (``l <= 0 <= h``, ``|u| <= lip``; see there)."""
     ix = int(math.floor((qx - f_origin[0]) / f_s))
     iy = int(math.floor((qy - f_origin[1]) / f_s))
     iz = int(math.floor((qz - f_origin[2]) / f_s))
@@ -322,6 +280,20 @@ def _nearest_abox(qx, qy, qz, lip, lx, hx, ly, hy, lz, hz, ref, f_origin, f_s, f
     if d + 2.0 * lip <= ub[v]:
         low = max(low, math.sqrt(boxb))
     return d, low
+
+
+@nb.njit(cache=True, inline="always", fastmath=_FAST)
+def _nearest_box(qx, qy, qz, lip, ex, ey, ez, ref, f_origin, f_s, f_shape, nb_shape, bmap,
+                 cand_off, cand_idx, ub, cap):
+    """Exact nearest distance ``d`` (``inf`` beyond ``cap``) and, in the same candidate loop, a
+    lower bound of the nearest distance over the displacement box ``|p - q|_a <= (ex, ey, ez)``,
+    ``|p - q| <= lip`` (spec 6.4 "tighter bound", inferred form): :func:`_nearest_abox` with the
+    symmetric box. Points farther than ``rho = d + 2 lip`` from ``q`` cannot be nearest anywhere
+    in the box; when ``rho <= ub_v`` they are all candidates of ``q``'s voxel, so the per-axis
+    bound over the candidates is rigorous; otherwise the Lipschitz bound ``d - lip`` is
+    returned."""
+    return _nearest_abox(qx, qy, qz, lip, -ex, ex, -ey, ey, -ez, ez, ref, f_origin, f_s,
+                         f_shape, nb_shape, bmap, cand_off, cand_idx, ub, cap)
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FAST)
