@@ -441,11 +441,11 @@ def guarded(folder: Path, feats, bundle) -> pd.DataFrame:
                                    match_m=max(3 * reg.sigma_m, reg.final_cell_m))
             row.update({k: fig[k] for k in ("support_m", "rival_ratio")})
             lv = levels[(levels["scan"] == r.scan) & (levels["reference"] == r.reference)]
-            why_h, hist = assess_history(lv, (r.peak_dx, r.peak_dy, r.peak_dz,
-                                              r.peak_dheading_deg),
+            why_h, late = assess_history(lv, (r.peak_dx, r.peak_dy, r.peak_dz,
+                                              r.peak_dheading_deg), 0.0,  # only the verdict
                                          separation_m=reg.rival_exclusion_m,
                                          max_cell_m=reg.history_max_cell_m)
-            row["history_flag"] = bool(len(hist))
+            row["history_flag"] = late is not None
             why = why or why_h
             if why and r.status == "accepted":
                 row["status_guarded"], row["guard"] = "rejected", why.split(":")[0]
@@ -597,9 +597,9 @@ def _register(scan_sub, ref_sub, centre, box, axes=0.0):
 def failure_row(case, truth, res, status, reason, why, fig, peer=None) -> dict:
     c = np.asarray(res.centre, float)
     reg = INDOOR.registration
-    _, hist = assess_history(res.levels, res.peak, separation_m=reg.rival_exclusion_m,
-                             max_cell_m=reg.history_max_cell_m) if res.ok else ("", [])
-    last = hist.iloc[int(np.argmin(hist["cell_m"]))] if len(hist) else None
+    _, last = assess_history(res.levels, res.peak, res.d_bar_m,
+                             separation_m=reg.rival_exclusion_m,
+                             max_cell_m=reg.history_max_cell_m) if res.ok else ("", None)
     return {
         "wrong": bool(np.hypot(c[0] - truth[0], c[1] - truth[1]) > 0.1),
         "case": case,
@@ -614,7 +614,7 @@ def failure_row(case, truth, res, status, reason, why, fig, peer=None) -> dict:
         "secondary_hypotheses": int(len(res.hypotheses)) + (last is not None),
         "coarse_to_fine_hypothesis": "-" if last is None else (
             f"leads at {last['cell_m']:.2f} m cells, {last['separation_m']:.1f} m away (share "
-            f"{last['level_mass_share']:.2f})"),
+            f"{last['mass_share']:.2f})"),
         "peer_icp_err_xy_m": np.nan if peer is None else peer,
     }
 

@@ -305,11 +305,7 @@ def test_chained_map_sums_variances_and_reports_the_unused_loop_closure():
 def test_coarse_to_fine_history_keeps_a_late_leader_as_a_secondary_hypothesis():
     """Th. Figs 5.8-5.9: the best cell jumps between hypotheses at coarse levels; a competitor
     that still leads with cells of <= 0.3 m is a secondary hypothesis and the result ambiguous."""
-    from forestmap_assets.core.pair_checks import (
-        assess_history,
-        history_hypotheses,
-        history_hypothesis_row,
-    )
+    from forestmap_assets.core.pair_checks import assess_history, history_hypotheses
 
     def level(k, cell, cells):
         return pd.DataFrame([(k, cell, x, y, 0.0, 0.0, s) for x, y, s in cells],
@@ -325,15 +321,14 @@ def test_coarse_to_fine_history_keeps_a_late_leader_as_a_secondary_hypothesis():
     assert hist["level"].tolist() == [1]
     assert hist["separation_m"].iloc[0] == pytest.approx(7.0)
     assert hist["level_mass_share"].iloc[0] == pytest.approx(1 / (1 + np.exp(-1.0)))
-    why, _ = assess_history(levels, peak, separation_m=1.0, max_cell_m=0.3)
+    why, row = assess_history(levels, peak, 8.0, separation_m=1.0, max_cell_m=0.3)
     assert why.startswith("ambiguous") and "0.25 m cells" in why and "7.00 m away" in why
-    row = history_hypothesis_row(hist, peak, d_bar_m=8.0)
     assert row["source"] == "coarse-to-fine history" and row["cell_m"] == 0.25
     assert row["peak_dx"] == 3.0 and row["separation_m"] == pytest.approx(7.0)
     # the same history with the peak leading at every fine level, or the check off: no flag
     calm = levels.assign(score=np.where(levels["dx"] > 9, levels["score"] + 50, levels["score"]))
     assert history_hypotheses(calm, peak).empty
-    assert assess_history(levels, peak, max_cell_m=None)[0] == ""
+    assert assess_history(levels, peak, 8.0, max_cell_m=None)[0] == ""
 
 
 

@@ -417,26 +417,19 @@ def history_hypotheses(levels: pd.DataFrame, peak, *, separation_m: float = 1.0,
     return pd.DataFrame(rows, columns=HISTORY_COLUMNS)
 
 
-def assess_history(levels: pd.DataFrame, peak, *, separation_m: float = 1.0,
-                   max_cell_m: float | None = 0.3) -> tuple[str, pd.DataFrame]:
+def assess_history(levels: pd.DataFrame, peak, d_bar_m: float, *, separation_m: float = 1.0,
+                   max_cell_m: float | None = 0.3) -> tuple[str, dict | None]:
     """Reason to reject a registration whose coarse-to-fine history was contested ('' if none;
-    ``max_cell_m`` None: not checked) and the contested levels (:func:`history_hypotheses`)."""
+    ``max_cell_m`` None: not checked) and the finest late leader of :func:`history_hypotheses`
+    as a secondary-hypothesis row (None if none): ``registration.HYPOTHESIS_COLUMNS`` plus
+    ``source``, ``level``, ``cell_m``; its cell at that level (no cloud, so no sigmas), its
+    share of that level's two masses as ``mass_share``, and its separation from ``peak`` (xyz,
+    heading as arc at ``d_bar_m``)."""
     if max_cell_m is None:
-        return "", pd.DataFrame(columns=HISTORY_COLUMNS)
+        return "", None
     hist = history_hypotheses(levels, peak, separation_m=separation_m, max_cell_m=max_cell_m)
     if hist.empty:
-        return "", hist
-    last = hist.iloc[int(np.argmin(hist["cell_m"].to_numpy(float)))]
-    return (f"ambiguous: with {last['cell_m']:.2f} m cells the search preferred an alignment "
-            f"{last['separation_m']:.2f} m away (a secondary hypothesis of the coarse-to-fine "
-            f"history, Th. Fig. 5.8)"), hist
-
-
-def history_hypothesis_row(hist: pd.DataFrame, peak, d_bar_m: float) -> dict:
-    """The finest late leader of :func:`history_hypotheses` as a secondary-hypothesis row
-    (``registration.HYPOTHESIS_COLUMNS`` plus ``source``, ``level``, ``cell_m``): its cell at
-    that level (no cloud, so no sigmas), its share of that level's two masses as
-    ``mass_share``, and its separation from ``peak`` (xyz, heading as arc at ``d_bar_m``)."""
+        return "", None
     h = hist.iloc[int(np.argmin(hist["cell_m"].to_numpy(float)))]
     pose = h[["dx", "dy", "dz", "dh_deg"]].to_numpy(float)
     sep = pose - np.asarray(peak, dtype=float)
@@ -447,4 +440,6 @@ def history_hypothesis_row(hist: pd.DataFrame, peak, d_bar_m: float) -> dict:
                sd_heading_deg=np.nan, n_cells=1, mass_share=float(h["level_mass_share"]),
                separation_m=float(np.linalg.norm(sep)), source="coarse-to-fine history",
                level=int(h["level"]), cell_m=float(h["cell_m"]))
-    return row
+    return (f"ambiguous: with {row['cell_m']:.2f} m cells the search preferred an alignment "
+            f"{float(h['separation_m']):.2f} m away (a secondary hypothesis of the coarse-to-fine "
+            f"history, Th. Fig. 5.8)"), row

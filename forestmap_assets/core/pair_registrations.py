@@ -243,7 +243,7 @@ def register_candidates(
             if progress:
                 progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {results[-1].seconds:.1f} s")
 
-    from .pair_checks import assess_history, assess_pair, history_hypothesis_row, judge_in_box
+    from .pair_checks import assess_history, assess_pair, judge_in_box
 
     rows, levels, hyps = [], [], []
     for c, job, res in zip(candidates.itertuples(index=False), jobs, results, strict=True):
@@ -260,10 +260,10 @@ def register_candidates(
                 status, reason = "rejected", why
         hyp = res.hypotheses.assign(source="branch and bound") if len(res.hypotheses) else None
         if res.status == "ok" and params.history_max_cell_m is not None:
-            why, hist = assess_history(res.levels, res.peak, separation_m=params.rival_exclusion_m,
-                                       max_cell_m=params.history_max_cell_m)
-            if len(hist):  # the finest late leader becomes a secondary hypothesis (spec 6.5, 8.6)
-                row = history_hypothesis_row(hist, res.peak, res.d_bar_m)
+            why, row = assess_history(res.levels, res.peak, res.d_bar_m,
+                                      separation_m=params.rival_exclusion_m,
+                                      max_cell_m=params.history_max_cell_m)
+            if row is not None:  # the finest late leader is a secondary hypothesis (spec 6.5, 8.6)
                 hyp = pd.concat([h for h in (hyp, pd.DataFrame([row])) if h is not None],
                                 ignore_index=True)
                 extra["n_hypotheses"] = len(hyp)
