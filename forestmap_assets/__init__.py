@@ -1,5 +1,5 @@
 """forestmap: registered, checked 3-D forest maps from terrestrial laser scans."""
 
-from .access import load_asset
+from forestmap_assets.access import load_asset
 
 __all__ = ["load_asset"]

@@ -7,9 +7,9 @@ from pathlib import Path
 import pyarrow as pa
 from upath import UPath
 
-from .campaign import Campaign, load_campaign
-from .core.range_image import RangeImage
-from .io.store import default_store_url, read_bundle, read_table
+from forestmap_assets.campaign import Campaign, load_campaign
+from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.io.store import default_store_url, read_bundle, read_table
 
 
 def _campaign_key(campaign: str | Path | Campaign) -> str:

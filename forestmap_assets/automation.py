@@ -49,8 +49,8 @@ from dagster import (
 )
 from dagster._core.definitions.data_version import DATA_VERSION_TAG, StaleStatus
 
-from .assets.common import CAMPAIGN_STAGES, asset_key, job_name, scan_partitions
-from .campaign import MANIFEST, Campaign, CampaignError, load_campaign
+from forestmap_assets.assets.common import CAMPAIGN_STAGES, asset_key, job_name, scan_partitions
+from forestmap_assets.campaign import MANIFEST, Campaign, CampaignError, load_campaign
 
 PROCESS_JOB = "process_campaign"
 CAMPAIGN_TAG = "forestmap/campaign"
@@ -73,7 +73,7 @@ class ProcessCampaignConfig(Config):
     "campaign through the forestmap runner (fresh definitions from its folder), then write its "
     "exports to CAMPAIGN/outputs.")
 def process_campaign_op(context: OpExecutionContext, config: ProcessCampaignConfig) -> None:
-    from .runner import run_campaign
+    from forestmap_assets.runner import run_campaign
 
     summary = run_campaign(config.folder, instance=context.instance, progress=context.log.info)
     if summary.failures:
@@ -84,7 +84,7 @@ def process_campaign_op(context: OpExecutionContext, config: ProcessCampaignConf
     context.log.info(f"{summary.campaign.name}: {len(summary.ran)} asset partitions materialised "
                      f"in {len(summary.run_ids)} runs ({summary.seconds:.1f} s)")
     if config.exports and summary.ran:
-        from .exports import write_exports
+        from forestmap_assets.exports import write_exports
 
         written = write_exports(summary.campaign, summary.campaign.root / "outputs")
         context.log.info("outputs written: " + ", ".join(str(p) for p in written))
@@ -164,8 +164,8 @@ def manifest_fingerprint(root: Path) -> str:
 
 def _campaign_status_fresh(campaign: Campaign, instance) -> bool:
     """Whether every asset of the campaign (fresh definitions) is fresh in the instance."""
-    from .runner import stage_states
-    from .workspace import build_definitions
+    from forestmap_assets.runner import stage_states
+    from forestmap_assets.workspace import build_definitions
 
     defs = build_definitions([campaign])
     return all(s.state == "fresh" for s in stage_states(defs, campaign, instance))
@@ -174,7 +174,7 @@ def _campaign_status_fresh(campaign: Campaign, instance) -> bool:
 def build_scan_files_sensor(loaded: list[Campaign], scan_jobs: list):
     """The sensor for the campaigns whose definitions are ``loaded`` (see module docstring);
     ``scan_jobs`` are their per-scan jobs."""
-    from .workspace import build_definitions, discover_campaign_folders
+    from forestmap_assets.workspace import build_definitions, discover_campaign_folders
 
     by_key = {c.key: c for c in loaded}
     manifests = {c.key: manifest_fingerprint(c.root) for c in loaded}
@@ -234,7 +234,7 @@ def build_scan_files_sensor(loaded: list[Campaign], scan_jobs: list):
 
 def _scan_requests(instance, graph, campaign: Campaign, fps: dict[str, str]):
     """Partition requests, observations and per-scan run requests of one loaded campaign."""
-    from .runner import resolver_for_graph
+    from forestmap_assets.runner import resolver_for_graph
 
     parts = scan_partitions(campaign)
     existing = set(instance.get_dynamic_partitions(parts.name))
@@ -277,7 +277,7 @@ def _scan_requests(instance, graph, campaign: Campaign, fps: dict[str, str]):
     "stale (changed parameters, scans or code versions); nothing when all is fresh.",
 )
 def nightly_reprocessing(context):
-    from .workspace import discover_campaign_folders
+    from forestmap_assets.workspace import discover_campaign_folders
 
     requests = []
     stamp = context.scheduled_execution_time.strftime("%Y-%m-%d") if context.scheduled_execution_time else "now"

@@ -104,7 +104,7 @@ def _say(args, text: str) -> None:
 
 
 def cmd_simulate(args) -> int:
-    from .sim import simulate_campaign
+    from forestmap_assets.sim import simulate_campaign
 
     out = simulate_campaign(
         args.out,
@@ -128,8 +128,8 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from .progress import Progress, use
-    from .runner import run_campaign
+    from forestmap_assets.progress import Progress, use
+    from forestmap_assets.runner import run_campaign
 
     if args.cloud_spacing < 0:
         raise UsageError(f"--cloud-spacing: expected a size >= 0 m, got {args.cloud_spacing:g}")
@@ -148,14 +148,14 @@ def cmd_run(args) -> int:
     if summary.not_built:
         print(f"materialised what exists in {summary.seconds:.1f} s; no exports written to {out} yet")
         return 0
-    from .exports import write_exports
+    from forestmap_assets.exports import write_exports
 
     written = write_exports(summary.campaign, out, cloud_spacing_m=None if args.no_cloud else args.cloud_spacing,
                             picture=not args.no_report, report=not args.no_report, progress=progress)
     print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
     if summary.check_failures:
         _say(args, f"{len(summary.check_failures)} asset checks failed (listed above)")
-    from .io.store import default_store_url
+    from forestmap_assets.io.store import default_store_url
 
     _say(args, f"asset store: {default_store_url()}; run history: {os.environ.get('DAGSTER_HOME')} (forestmap ui)")
     _say(args, f"done in {summary.seconds:.1f} s")
@@ -163,7 +163,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_solve(args) -> int:
-    from .solve import run_solve
+    from forestmap_assets.solve import run_solve
 
     order = [s.strip() for s in args.order.split(",") if s.strip()] if args.order else None
     paths = run_solve(args.observations, order=order, out_dir=args.out)
@@ -172,15 +172,15 @@ def cmd_solve(args) -> int:
 
 
 def cmd_status(args) -> int:
-    from .campaign import load_campaign
-    from .runner import get_instance, stage_states, sync_partitions
-    from .workspace import build_definitions
+    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.runner import get_instance, stage_states, sync_partitions
+    from forestmap_assets.workspace import build_definitions
 
     campaign = load_campaign(args.campaign)
     defs = build_definitions([campaign])
     instance = get_instance()
     sync_partitions(instance, campaign)
-    from .assets.common import asset_key
+    from forestmap_assets.assets.common import asset_key
 
     for state in stage_states(defs, campaign, instance):
         print(f"{asset_key(campaign, state.stage).to_user_string()} {state.state}")
@@ -190,9 +190,9 @@ def cmd_status(args) -> int:
 def cmd_ui(args) -> int:
     import subprocess
 
-    from .runner import get_instance
-    from .webserver import webserver_command
-    from .workspace import data_root
+    from forestmap_assets.runner import get_instance
+    from forestmap_assets.webserver import webserver_command
+    from forestmap_assets.workspace import data_root
 
     get_instance()  # sets DAGSTER_HOME to the persistent instance
     _say(args, f"Dagster UI on http://{args.host}:{args.port} for the campaigns under {data_root()} "
@@ -201,7 +201,7 @@ def cmd_ui(args) -> int:
 
 
 def cmd_explore(args) -> int:
-    from .explore import explore
+    from forestmap_assets.explore import explore
 
     if args.budget < 1:
         raise UsageError("explore: --budget must be at least 1")
@@ -227,7 +227,7 @@ COMMANDS = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .progress import one_line
+    from forestmap_assets.progress import one_line
 
     args = _parser().parse_args(argv)
     warnings.filterwarnings("ignore")

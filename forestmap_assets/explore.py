@@ -37,11 +37,16 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .core.exploration import ExplorationConfig
-from .core.occlusion import OcclusionConfig
-from .sim.campaign import relative_pose, save_npz, scan_ids, visible_trees, wrap_deg
-from .sim.forest import KIND_UNDERSTOREY, breast_height_table, make_forest, stems_in_frame
-from .sim.scanner import RESOLUTION_DIVISOR, ScanPose, VirtualScanner
+from forestmap_assets.core.exploration import ExplorationConfig
+from forestmap_assets.core.occlusion import OcclusionConfig
+from forestmap_assets.sim.campaign import relative_pose, save_npz, scan_ids, visible_trees, wrap_deg
+from forestmap_assets.sim.forest import (
+    KIND_UNDERSTOREY,
+    breast_height_table,
+    make_forest,
+    stems_in_frame,
+)
+from forestmap_assets.sim.scanner import RESOLUTION_DIVISOR, ScanPose, VirtualScanner
 
 Progress = Callable[[str], None]
 STEP_COLUMNS = [
@@ -316,8 +321,8 @@ class SurfaceCache:
         self._cache: dict[tuple[str, str], dict] = {}
 
     def get(self, campaign, sid: str) -> dict:
-        from .access import load_asset
-        from .assets.exploration import scan_surface
+        from forestmap_assets.access import load_asset
+        from forestmap_assets.assets.exploration import scan_surface
 
         key = (campaign.key, sid)
         if key not in self._cache:
@@ -339,9 +344,9 @@ def read_map(
 ) -> SurveyMap:
     """Load the stored map of the campaign and plan from it; the surveyor stands at scan
     ``current`` (its estimated position), or at ``fallback_xy`` when it is not registered."""
-    from .access import load_asset
-    from .assets.exploration import plan_from_map
-    from .campaign import load_campaign
+    from forestmap_assets.access import load_asset
+    from forestmap_assets.assets.exploration import plan_from_map
+    from forestmap_assets.campaign import load_campaign
 
     campaign = load_campaign(folder)
     poses = load_asset("optimal_map", campaign=campaign)["poses"]
@@ -363,7 +368,7 @@ class ExploreError(ValueError):
 
 def _run(folder: Path, progress: Progress) -> float:
     """Run the pipeline on the campaign as it stands; raise :class:`ExploreError` on a failure."""
-    from .runner import run_campaign
+    from forestmap_assets.runner import run_campaign
 
     t0 = time.perf_counter()
     summary = run_campaign(folder, progress=lambda m: progress(f"    {m.strip()}"))
@@ -374,7 +379,7 @@ def _run(folder: Path, progress: Progress) -> float:
 
 
 def _registration_check(folder: Path, poses: pd.DataFrame, sid: str) -> tuple[bool, float, float]:
-    from .sim.evaluate import pose_errors
+    from forestmap_assets.sim.evaluate import pose_errors
 
     truth = pd.read_csv(folder / "truth" / "poses.csv")
     row = poses[poses["scan"] == sid]
@@ -387,7 +392,7 @@ def _registration_check(folder: Path, poses: pd.DataFrame, sid: str) -> tuple[bo
 
 def _tree_counts(folder: Path, trees: pd.DataFrame, match_m: float = 0.5) -> tuple[int, int, float]:
     """Truth trees matched by a mapped tree, those with a DBH, and the DBH RMSE (m)."""
-    from .sim.evaluate import match_trees
+    from forestmap_assets.sim.evaluate import match_trees
 
     truth = pd.read_csv(folder / "truth" / "trees.csv")
     m = match_trees(trees, truth, match_m)
@@ -416,7 +421,7 @@ class ExploreResult:
 
 
 def _save_plan(out: Path, k: int, sm: SurveyMap, title: str) -> None:
-    from .core.exploration import exploration_figure
+    from forestmap_assets.core.exploration import exploration_figure
 
     sm.plan.proposals.to_csv(
         out / "explore" / f"proposals_{k:02d}.csv", index=False, float_format="%.4f"
@@ -625,8 +630,8 @@ def explore(
             break
     steps = pd.DataFrame(rows, columns=STEP_COLUMNS)
     steps.to_csv(out / "explore" / "steps.csv", index=False, float_format="%.4f")
-    from .campaign import load_campaign
-    from .exports import write_exports
+    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.exports import write_exports
 
     write_exports(load_campaign(out), out / "outputs", **(export_kwargs or {}))
     found, with_dbh, rmse = _tree_counts(out, sm.trees)
@@ -651,7 +656,7 @@ def explore(
 
 
 def relative_pose_tuple(scan_pose, reference_pose) -> tuple:
-    from .core.geometry import relative_pose as rel
+    from forestmap_assets.core.geometry import relative_pose as rel
 
     return rel(scan_pose, reference_pose)
 
@@ -665,7 +670,7 @@ def _ground_at(grid, xy) -> float:
 
 def _more_references(sm: SurveyMap, xy, first: str, config: ExplorationConfig, n: int) -> list[str]:
     """Up to ``n`` further registered scans predicted to share enough stems with position ``xy``."""
-    from .core.exploration import stem_visibility, visible_stems
+    from forestmap_assets.core.exploration import stem_visibility, visible_stems
 
     if n <= 0 or len(sm.scans) < 2 or not len(sm.stems):
         return []
@@ -823,8 +828,8 @@ def survey_positions(
     steps.loc[steps.index[-1], "coverage"] = cov
     steps.to_csv(out / "explore" / "steps.csv", index=False, float_format="%.4f")
     _save_plan(out, len(steps) - 1, sm, f"fixed positions, after scan {writer.ids[-1]}")
-    from .campaign import load_campaign
-    from .exports import write_exports
+    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.exports import write_exports
 
     write_exports(load_campaign(out), out / "outputs", **(export_kwargs or {}))
     found, with_dbh, rmse = _tree_counts(out, sm.trees)

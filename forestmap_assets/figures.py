@@ -31,7 +31,7 @@ import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from .core.range_image import RangeImage, levelling_rotation
+from forestmap_assets.core.range_image import RangeImage, levelling_rotation
 
 STATUS_COLOURS = {
     "accepted": "#1b7837",
@@ -192,7 +192,7 @@ def range_image_panels(
     models (each row's mark as wide as its circle), (d) the cylinder segments over the range
     image. Axes in degrees of azimuth and elevation; ``azimuth_range`` / ``elevation_range``
     (degrees) zoom in. Panels without data are left out."""
-    from .core.segments import segment_mask
+    from forestmap_assets.core.segments import segment_mask
 
     extent = _angles_extent(image)
     view = (*(azimuth_range or extent[:2]), *(elevation_range or extent[2:]))
@@ -549,7 +549,7 @@ def _cmap(name: str):
 
 def _level_components(cells: pd.DataFrame) -> np.ndarray:
     """Labels of the 80-connected components of one level's surviving cells (spec 6.5)."""
-    from .core.registration import lattice_components
+    from forestmap_assets.core.registration import lattice_components
 
     size = cells[["cell_x_m", "cell_y_m", "cell_z_m", "cell_heading_deg"]].iloc[0].to_numpy(float)
     pose = cells[["dx", "dy", "dz", "dh_deg"]].to_numpy(float).copy()
@@ -801,7 +801,7 @@ def submap_overlay(
     """Top view of two sub-maps (registration points, spec 6.2): the reference in grey and the
     scan placed in the reference frame by each of ``poses`` (label -> dx, dy, dz, dheading_deg),
     one panel per pose (e.g. the a priori and the registration result)."""
-    from .core.geometry import transform_points
+    from forestmap_assets.core.geometry import transform_points
 
     fig = new_figure(5.2 * max(len(poses), 1), 5.0)
     axes = np.atleast_1d(
@@ -1082,7 +1082,7 @@ def crop_box(
 
 def crop_grid(grid, box: tuple[float, float, float, float]):
     """The part of an :class:`~forestmap_assets.core.elevation.ElevationGrid` inside ``box``."""
-    from .core.elevation import ElevationGrid
+    from forestmap_assets.core.elevation import ElevationGrid
 
     ny, nx = grid.z.shape
     i0 = int(np.clip(np.floor((box[0] - grid.x0) / grid.cell_m), 0, nx))
@@ -1118,7 +1118,7 @@ def remove_spikes(grid, spike_m: float | None = 1.0, window: int = 7, percentile
     loses its value. ``spike_m=None`` keeps every cell."""
     from numpy.lib.stride_tricks import sliding_window_view
 
-    from .core.elevation import ElevationGrid
+    from forestmap_assets.core.elevation import ElevationGrid
 
     z = grid.z
     if spike_m is None or z.size == 0:
@@ -1143,7 +1143,7 @@ def ground_limits(
     """Colour limits of the ground (inferred): percentiles of the 0.6 m rendering grid
     (mean of the 5 lowest 0.1 m cells, spec 9) without spikes (:func:`remove_spikes`), which
     leaves out the branch hits that make some cells metres too high (JP Fig. 12 caption)."""
-    from .core.elevation import render_grid
+    from forestmap_assets.core.elevation import render_grid
 
     coarse = (
         remove_spikes(render_grid(grid, render_cell_m, n_lowest), spike_m) if grid.z.size else grid

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from .campaign import Campaign
-from .core.geometry import relative_pose
+from forestmap_assets.campaign import Campaign
+from forestmap_assets.core.geometry import relative_pose
 
 SAMPLE = Path("data") / "sample"
 
@@ -83,8 +83,8 @@ def variant_campaign(
 def stage_table(campaign: Campaign) -> pd.Series:
     """State (``missing`` / ``stale`` / ``fresh``) of every pipeline stage of ``campaign``
     under its own manifest, from Dagster's stale-status resolver (as ``forestmap status``)."""
-    from .definitions import build_definitions
-    from .runner import get_instance, stage_states
+    from forestmap_assets.definitions import build_definitions
+    from forestmap_assets.runner import get_instance, stage_states
 
     states = stage_states(build_definitions([campaign]), campaign, get_instance())
     return pd.Series({s.stage: s.state for s in states}, name="state")

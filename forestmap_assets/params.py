@@ -212,19 +212,19 @@ def _section_from_config(name: str, config: type) -> type[_Stage]:
 
 
 def _occlusion_section() -> type[_Stage]:
-    from .core.occlusion import OcclusionConfig
+    from forestmap_assets.core.occlusion import OcclusionConfig
 
     return _section_from_config("OcclusionParams", OcclusionConfig)
 
 
 def _exploration_section() -> type[_Stage]:
-    from .core.exploration import ExplorationConfig
+    from forestmap_assets.core.exploration import ExplorationConfig
 
     return _section_from_config("ExplorationParams", ExplorationConfig)
 
 
 def _refine_section() -> type[_Stage]:
-    from .core.refine import RefineSettings
+    from forestmap_assets.core.refine import RefineSettings
 
     return _section_from_config("RefineParams", RefineSettings)
 

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .access import load_asset
-from .campaign import Campaign
+from forestmap_assets.access import load_asset
+from forestmap_assets.campaign import Campaign
 
 TIMING_COLUMNS = [
     "stage",
@@ -68,10 +68,10 @@ def stage_timings(campaign: Campaign, instance=None) -> pd.DataFrame:
     from dagster import AssetKey
     from dagster._core.event_api import AssetRecordsFilter
 
-    from .assets.common import PIPELINE
+    from forestmap_assets.assets.common import PIPELINE
 
     if instance is None:
-        from .runner import get_instance
+        from forestmap_assets.runner import get_instance
 
         instance = get_instance()
     step_cache: dict[str, dict[str, float]] = {}
@@ -143,7 +143,7 @@ def _truth_accuracy(campaign: Campaign, out_dir: Path):
         or not (out_dir / "poses.csv").is_file()
     ):
         return None
-    from .sim.evaluate import evaluate_campaign
+    from forestmap_assets.sim.evaluate import evaluate_campaign
 
     try:
         return evaluate_campaign(campaign.root, out_dir)
@@ -161,7 +161,7 @@ def _img(data: bytes, alt: str) -> str:
 
 
 def _fig(fig, alt: str) -> str:
-    from .figures import png_bytes
+    from forestmap_assets.figures import png_bytes
 
     return _img(png_bytes(fig, dpi=100), alt)
 
@@ -222,8 +222,8 @@ def build_report(
 
     Pictures already written to ``out_dir`` (``map.png``, ``elevation.png``) are embedded;
     the network, residual and DBH figures are drawn here."""
-    from . import figures as F
-    from .exports import elevation_from_table
+    from forestmap_assets import figures as F
+    from forestmap_assets.exports import elevation_from_table
 
     out_dir = Path(out_dir)
     omap = _load("optimal_map", campaign) or {}
@@ -445,7 +445,7 @@ def build_report(
         add(_card(int(props["feasible"].sum()) if len(props) else 0, "feasible positions"))
         add("</div><div class='row'><div>")
         with contextlib.suppress(Exception):  # the picture is a convenience, never a failure
-            from .assets.exploration import write_next_vantage_png
+            from forestmap_assets.assets.exploration import write_next_vantage_png
 
             with tempfile.TemporaryDirectory() as tmp:
                 png = Path(tmp) / "next_vantage.png"

@@ -19,13 +19,13 @@ from dagster import (
     define_asset_job,
 )
 
-from ..campaign import Campaign
-from .common import CAMPAIGN_STAGES, asset_key, job_name
-from .exploration import exploration_assets
-from .features import feature_assets
-from .ingest import ingest_assets
-from .mapping import mapping_assets
-from .refine import refine_assets
+from forestmap_assets.assets.common import CAMPAIGN_STAGES, asset_key, job_name
+from forestmap_assets.assets.exploration import exploration_assets
+from forestmap_assets.assets.features import feature_assets
+from forestmap_assets.assets.ingest import ingest_assets
+from forestmap_assets.assets.mapping import mapping_assets
+from forestmap_assets.assets.refine import refine_assets
+from forestmap_assets.campaign import Campaign
 
 warnings.filterwarnings("ignore", category=BetaWarning)
 warnings.filterwarnings("ignore", category=PreviewWarning)

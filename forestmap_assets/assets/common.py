@@ -20,7 +20,7 @@ from dagster import (
     MetadataValue,
 )
 
-from ..campaign import Campaign
+from forestmap_assets.campaign import Campaign
 
 # Bump a stage's number when its code changes meaning; the parameter hash is appended.
 CODE_VERSIONS: dict[str, str] = {
@@ -116,7 +116,7 @@ def code_version(campaign: Campaign, stage: str) -> str:
     """Stage code version plus the hash of its resolved parameter sections and of the
     manifest entries it reads (``STAGE_MANIFEST``)."""
     if stage not in CODE_VERSIONS:  # the exploration stages (Men 2012) version their settings
-        from .exploration import stage_version
+        from forestmap_assets.assets.exploration import stage_version
 
         return stage_version(campaign, stage)
     digests = [campaign.params.digest(s) for s in STAGE_PARAMS[stage]]

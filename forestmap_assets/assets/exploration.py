@@ -16,11 +16,11 @@ import numpy as np
 import pandas as pd
 from dagster import AssetIn, MetadataValue, Output, asset
 
-from ..campaign import Campaign
-from ..core.exploration import ExplorationConfig, VantagePlan
-from ..core.occlusion import OcclusionConfig
-from ..figures import range_mask_figure
-from .common import asset_key, data_version, png_metadata, scan_partitions
+from forestmap_assets.assets.common import asset_key, data_version, png_metadata, scan_partitions
+from forestmap_assets.campaign import Campaign
+from forestmap_assets.core.exploration import ExplorationConfig, VantagePlan
+from forestmap_assets.core.occlusion import OcclusionConfig
+from forestmap_assets.figures import range_mask_figure
 
 CODE_VERSIONS = {"occlusion_boundaries": "1", "next_vantage_points": "1"}
 
@@ -48,8 +48,8 @@ def stage_version(campaign: Campaign, stage: str) -> str:
 def scan_surface(image, config: OcclusionConfig) -> dict[str, pd.DataFrame]:
     """The ``occlusion_boundaries`` bundle of one range image: ``boundaries`` (flagged pixels),
     ``surface`` (observed-surface voxels, levelled scan frame) and ``info`` (one row)."""
-    from ..core.exploration import observed_surface
-    from ..core.occlusion import boundaries_table, detect_occlusions
+    from forestmap_assets.core.exploration import observed_surface
+    from forestmap_assets.core.occlusion import boundaries_table, detect_occlusions
 
     ob = detect_occlusions(image, **config.detector_kwargs())
     table = boundaries_table(image, ob)
@@ -106,8 +106,8 @@ def plan_from_map(
     ``surfaces``: scan id -> ``occlusion_boundaries`` bundle (or its ``surface`` table);
     ``integrated_map``: the bundle with ``elevation`` and registered ``scans``. Returns the plan,
     the merged elevation grid and the stems (``x, y, r``)."""
-    from ..core.exploration import build_grid, plan_next_vantage
-    from ..exports import elevation_from_table
+    from forestmap_assets.core.exploration import build_grid, plan_next_vantage
+    from forestmap_assets.exports import elevation_from_table
 
     elevation = elevation_from_table(integrated_map["elevation"])
     scans = integrated_map["scans"]
@@ -157,7 +157,7 @@ def plan_from_map(
 def plan_tables(plan: VantagePlan) -> dict[str, pd.DataFrame]:
     """The ``next_vantage_points`` bundle: ``proposals``, ``paths`` (rank, step, x, y),
     ``coverage`` (one row) and ``cells`` (every plot cell: class, ground, density, frontier)."""
-    from ..core.exploration import CLASS_NAMES
+    from forestmap_assets.core.exploration import CLASS_NAMES
 
     grid = plan.grid
     paths = [
@@ -225,7 +225,7 @@ def exploration_assets(campaign: Campaign) -> list:
         "observed surface between unflagged neighbours as voxels (for the exploration grid).",
     )
     def occlusion_boundaries(context, range_images):
-        from ..core.range_image import RangeImage
+        from forestmap_assets.core.range_image import RangeImage
 
         image = RangeImage.from_table(range_images)
         bundle = scan_surface(image, occ_cfg)
@@ -266,7 +266,7 @@ def exploration_assets(campaign: Campaign) -> list:
         "stems / 50 % overlap) and by walking distance (Men 2012 ch. 3.7-3.8, 6; men_spec 7).",
     )
     def next_vantage_points(context, occlusion_boundaries, integrated_map, tree_list):
-        from ..core.exploration import exploration_figure
+        from forestmap_assets.core.exploration import exploration_figure
 
         surfaces = occlusion_boundaries or {}
         if "surface" in surfaces and isinstance(surfaces["surface"], pd.DataFrame):
@@ -337,9 +337,9 @@ def _md(df: pd.DataFrame) -> str:
 def write_next_vantage_png(campaign: Campaign, path, *, store_url: str | None = None):
     """``next_vantage.png`` of a materialised campaign (for the exports and the report): the plan
     recomputed from the stored occlusion boundaries, integrated map and tree list."""
-    from ..access import load_asset
-    from ..core.elevation import _atomic_write
-    from ..core.exploration import exploration_figure
+    from forestmap_assets.access import load_asset
+    from forestmap_assets.core.elevation import _atomic_write
+    from forestmap_assets.core.exploration import exploration_figure
 
     integrated = load_asset("integrated_map", campaign=campaign, store_url=store_url)
     trees = load_asset("tree_list", campaign=campaign, store_url=store_url)

@@ -6,10 +6,7 @@ import numpy as np
 import pandas as pd
 from dagster import AssetIn, MetadataValue, Output, asset
 
-from ..campaign import Campaign
-from ..core.range_image import RangeImage
-from ..figures import circle_mask, cylinder_outlines, range_mask_figure
-from .common import (
+from forestmap_assets.assets.common import (
     asset_key,
     circle_check_specs,
     circle_checks,
@@ -21,6 +18,9 @@ from .common import (
     scan_check_thresholds,
     scan_partitions,
 )
+from forestmap_assets.campaign import Campaign
+from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.figures import circle_mask, cylinder_outlines, range_mask_figure
 
 
 def _image(table) -> RangeImage:
@@ -32,12 +32,12 @@ def _counts(series: pd.Series) -> dict[str, int]:
 
 
 def feature_assets(campaign: Campaign) -> list:
-    from ..core.circles import fit_circle_models
-    from ..core.cylinders import assemble_cylinders
-    from ..core.elevation import elevation_grid
-    from ..core.lines import extract_line_segments
-    from ..core.segments import segment_mask, segment_scan_lines
-    from ..core.submaps import build_submap
+    from forestmap_assets.core.circles import fit_circle_models
+    from forestmap_assets.core.cylinders import assemble_cylinders
+    from forestmap_assets.core.elevation import elevation_grid
+    from forestmap_assets.core.lines import extract_line_segments
+    from forestmap_assets.core.segments import segment_mask, segment_scan_lines
+    from forestmap_assets.core.submaps import build_submap
 
     parts = scan_partitions(campaign)
     params = campaign.params

@@ -13,21 +13,21 @@ from dagster import (
     observable_source_asset,
 )
 
-from ..campaign import Campaign
-from ..core.range_image import RangeImage
-from ..figures import range_mask_figure
-from .common import (
+from forestmap_assets.assets.common import (
     asset_key,
     code_version,
     data_version,
     png_metadata,
     scan_partitions,
 )
+from forestmap_assets.campaign import Campaign
+from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.figures import range_mask_figure
 
 
 def read_campaign_scan(campaign: Campaign, scan_id: str) -> RangeImage:
     """Read one scan of the campaign as a levelled organised range image."""
-    from ..io.readers import read_scan
+    from forestmap_assets.io.readers import read_scan
 
     try:
         entry = campaign.scan(scan_id)

@@ -15,10 +15,10 @@ from dagster import (
     asset,
 )
 
-from ..campaign import Campaign
-from ..figures import dbh_histogram, elevation_figure, network_figure
-from ..progress import report
-from .common import asset_key, code_version, data_version, png_metadata
+from forestmap_assets.assets.common import asset_key, code_version, data_version, png_metadata
+from forestmap_assets.campaign import Campaign
+from forestmap_assets.figures import dbh_histogram, elevation_figure, network_figure
+from forestmap_assets.progress import report
 
 POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
 
@@ -40,7 +40,7 @@ def _md_table(df: pd.DataFrame, floatfmt: str = ".3f") -> MetadataValue:
 
 def poses_table(campaign: Campaign, solution_poses: pd.DataFrame | None) -> pd.DataFrame:
     """``poses.csv`` rows for every scan of the campaign; unplaced scans have empty poses."""
-    from ..core.geometry import wrap_deg
+    from forestmap_assets.core.geometry import wrap_deg
 
     out = pd.DataFrame({"scan": campaign.scan_ids})
     if solution_poses is not None and len(solution_poses):
@@ -55,14 +55,14 @@ def poses_table(campaign: Campaign, solution_poses: pd.DataFrame | None) -> pd.D
 
 
 def mapping_assets(campaign: Campaign) -> list:
-    from ..core.candidates import candidate_pairs as make_candidates
-    from ..core.elevation import merge_elevation
-    from ..core.link_selection import select_links
-    from ..core.optimal_map import RHO_COLUMNS
-    from ..core.pair_registrations import register_candidates
-    from ..core.submaps import submap_reach
-    from ..core.trees import cylinders_to_global, merge_trees
-    from ..exports import elevation_from_table, elevation_to_table
+    from forestmap_assets.core.candidates import candidate_pairs as make_candidates
+    from forestmap_assets.core.elevation import merge_elevation
+    from forestmap_assets.core.link_selection import select_links
+    from forestmap_assets.core.optimal_map import RHO_COLUMNS
+    from forestmap_assets.core.pair_registrations import register_candidates
+    from forestmap_assets.core.submaps import submap_reach
+    from forestmap_assets.core.trees import cylinders_to_global, merge_trees
+    from forestmap_assets.exports import elevation_from_table, elevation_to_table
 
     params = campaign.params
     reference = campaign.scan_ids[0]
@@ -97,8 +97,8 @@ def mapping_assets(campaign: Campaign) -> list:
             k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
         )
         if fourier and len(table) and (table["source"] == "no_prior").any():
-            from ..core.fourier import coarse_candidates
-            from ..core.range_image import RangeImage
+            from forestmap_assets.core.fourier import coarse_candidates
+            from forestmap_assets.core.range_image import RangeImage
 
             images = {sid: RangeImage.from_table(t) for sid, t in (raw.get("range_images") or {}).items()}
             clouds = {sid: im.xyz[im.valid] for sid, im in images.items()}
@@ -162,7 +162,7 @@ def mapping_assets(campaign: Campaign) -> list:
             links = accepted.assign(status=pd.Series(dtype=object), role=pd.Series(dtype=object), step=pd.Series(dtype=int))
             residuals = pd.DataFrame(columns=["scan", "reference", "ex", "ey", "ez", "eheading_deg", "rx", "ry", "rz", "rheading", "verdict"])
         elif mp.method == "chain":  # the thesis's parking lot / corridor maps (spec 8.3)
-            from ..core.chained_map import chained_map
+            from forestmap_assets.core.chained_map import chained_map
 
             chained = chained_map(accepted, campaign.scan_ids, link_choice=mp.chain_link_choice,
                                   covariance=mp.covariance, residual_sigmas=mp.residual_sigmas,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .geometry import relative_pose
+from forestmap_assets.core.geometry import relative_pose
 
 CANDIDATE_COLUMNS = (
     "scan", "reference", "cx", "cy", "cz", "cheading_deg", "hx", "hy", "hz", "hheading_deg",
@@ -62,7 +62,7 @@ def candidate_pairs(
     xy_m, z_m, heading_deg = (float(v) for v in search)
     rows: list[dict] = []
     if pairs:
-        from .pair_checks import search_box
+        from forestmap_assets.core.pair_checks import search_box
 
         for scan, ref, prior, *box in pairs:
             dx, dy, dz, dh = (float(v) for v in prior)

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .chaining import Covariance, chain_poses
-from .residuals import residuals_for_poses
+from forestmap_assets.core.chaining import Covariance, chain_poses
+from forestmap_assets.core.residuals import residuals_for_poses
 
 RESIDUAL_COLUMNS = ["scan", "reference", "ex", "ey", "ez", "eheading_deg", "rx", "ry", "rz",
                     "rheading", "verdict"]
@@ -48,7 +48,7 @@ def chained_map(
     = reference, spec 8.3). A link is on the chain when its residual against the chained poses
     is zero (below ``chain_tolerance`` in every component: the chain reproduces its own links
     exactly); other links between placed scans are ``unused`` with their residual verdict."""
-    from .geometry import wrap_deg
+    from forestmap_assets.core.geometry import wrap_deg
 
     order = [str(s) for s in order]
     obs = observations.reset_index(drop=True)

@@ -42,7 +42,7 @@ import pandas as pd
 from scipy import fft as sfft
 from scipy.spatial import cKDTree
 
-from .cloud import pca_normals, radius_outlier_mask, voxel_subsample
+from forestmap_assets.core.cloud import pca_normals, radius_outlier_mask, voxel_subsample
 
 # --------------------------------------------------------------------------------------------
 # sphere grid and EGI

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .geometry import transform_points
+from forestmap_assets.core.geometry import transform_points
 
 
 @dataclass(frozen=True)

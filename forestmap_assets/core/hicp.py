@@ -44,7 +44,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from .colour import hue_features
+from forestmap_assets.core.colour import hue_features
 
 HISTORY_COLUMNS = ["iteration", "error", "error_m", "n_pairs", "changed"]
 
@@ -363,7 +363,7 @@ def merged_normal_quality(model_xyz: np.ndarray, moved_data: np.ndarray, radius_
     """``eps_n`` of spec 5.7: radius-PCA normals of the model alone vs at the same model points in
     the merged cloud (model + registered data), with the same estimator
     (:func:`~.cloud.radius_normals`); 1 when merging leaves the model's surfaces undisturbed."""
-    from .cloud import radius_normals
+    from forestmap_assets.core.cloud import radius_normals
 
     model = np.asarray(model_xyz, dtype=np.float64)
     centre = model.mean(axis=0)

@@ -37,8 +37,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from .geometry import transform_points, wrap_deg
-from .score import ScoreModel
+from forestmap_assets.core.geometry import transform_points, wrap_deg
+from forestmap_assets.core.score import ScoreModel
 
 SEARCH_KEYS = ("xy_m", "x_m", "y_m", "z_m", "heading_deg", "along_deg", "along_m", "across_m")
 CHECK_COLUMNS = ["support_m", "weak_direction_deg", "rival_ratio", "rival_separation_m",
@@ -173,7 +173,7 @@ def rival_alignment(
     ambiguity measure), its ``rival_dx, rival_dy, rival_separation_m`` and ``support_m``, and
     ``any_rival_ratio`` (best rival, credible or not).
     """
-    from .registration import refine_local
+    from forestmap_assets.core.registration import refine_local
 
     model = ScoreModel.from_params(params)
     pts = scan_submap[["x", "y", "z"]].to_numpy(float).reshape(-1, 3)
@@ -311,7 +311,7 @@ def register_in_box(scan_points, ref_points, centre, half_widths, params, *,
     ``-box_heading_deg``, the box centre likewise, the search runs axis-aligned there, and the
     result (peak, centre, hypotheses) is turned back; sigmas become the diagonal of the turned
     covariance ``R diag(sd^2) R^T``. ``box_heading_deg = 0`` is a plain ``register_pair``."""
-    from .registration import register_pair
+    from forestmap_assets.core.registration import register_pair
 
     a = float(box_heading_deg)
     if a == 0.0:
@@ -364,7 +364,7 @@ def judge_in_box(result, params, centre, half_widths, box_heading_deg: float = 0
     were turned back)."""
     import copy
 
-    from .pair_registrations import judge
+    from forestmap_assets.core.pair_registrations import judge
 
     frame = getattr(result, "box_frame", None)
     if not box_heading_deg or frame is None or not result.ok:

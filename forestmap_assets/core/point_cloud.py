@@ -14,7 +14,7 @@ from collections.abc import Mapping
 import numpy as np
 import pandas as pd
 
-from .geometry import transform_points
+from forestmap_assets.core.geometry import transform_points
 
 CLOUD_COLUMNS = ["x", "y", "z", "scan"]
 
@@ -24,7 +24,7 @@ def voxel_keep(xyz: np.ndarray, spacing_m: float) -> np.ndarray:
     anchored at the origin of the frame (so that thinning scan by scan and then the union use
     the same voxels): :func:`~forestmap_assets.core.cloud.voxel_subsample`, the point nearest the
     centroid of its voxel (men spec 3.2). ``spacing_m <= 0`` keeps every finite point."""
-    from .cloud import voxel_subsample
+    from forestmap_assets.core.cloud import voxel_subsample
 
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     finite = np.flatnonzero(np.isfinite(xyz).all(axis=1))

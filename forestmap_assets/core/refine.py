@@ -49,9 +49,9 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from .cloud import pca_normals, voxel_subsample
-from .geometry import wrap_deg
-from .hicp import (
+from forestmap_assets.core.cloud import pca_normals, voxel_subsample
+from forestmap_assets.core.geometry import wrap_deg
+from forestmap_assets.core.hicp import (
     Embedding,
     ModelIndex,
     hicp,

@@ -75,8 +75,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .geometry import wrap_deg
-from .score import ScoreModel
+from forestmap_assets.core.geometry import wrap_deg
+from forestmap_assets.core.score import ScoreModel
 
 POSE_COLUMNS = ("dx", "dy", "dz", "dh_deg")
 LEVEL_COLUMNS = (
@@ -514,7 +514,7 @@ def _eval_live_chunked(field, poses, par, off, idx, pts, d_xy, e, tight, best, l
     With ``lo``/``hi`` (the asymmetric bound) the parents' per-point ``terms`` (aligned with
     ``idx``) and bounds ``par_bound`` tighten and stop the children early; the kept cells'
     terms are returned as a sixth result (None otherwise)."""
-    from .score_field import compact_live
+    from forestmap_assets.core.score_field import compact_live
 
     limit = LIVE_CHUNK if limit is None else limit
     n = len(poses)
@@ -561,7 +561,7 @@ def _fast_search(points, reference, lattice: SearchLattice, model, field, keep_l
     ``lattice_bound``: bound each cell over its final-lattice points only
     (:func:`_lattice_extent`) and keep cells whose bound reaches ``best - margin``.
     """
-    from .score_field import compact_live
+    from forestmap_assets.core.score_field import compact_live
 
     pts = np.ascontiguousarray(points, dtype=np.float64)
     n = len(pts)
@@ -799,7 +799,7 @@ def matched_stems(scan_points: np.ndarray, reference_points: np.ndarray, pose_de
     blobs (:func:`~.stem_voting.stem_positions`, ``cell_m``); blobs of at least ``min_points``
     points (0.5 m of stem at 0.05 m spacing) count. One long stem can match hundreds of points,
     so the point count alone cannot tell one coincidence from an overlap."""
-    from .stem_voting import stem_positions
+    from forestmap_assets.core.stem_voting import stem_positions
 
     b = np.asarray(scan_points, dtype=float).reshape(-1, 3)
     if len(b) == 0 or len(reference_points) == 0:
@@ -827,7 +827,7 @@ def reference_field(reference_points: np.ndarray, model: ScoreModel):
     and reused while the same points come back (every pair a scan is the reference of, e.g. the
     candidate pairs of ``register_candidates``; keyed by a hash of the points and the score
     constants, so a changed sub-map never reuses a stale field)."""
-    from .score_field import ReferenceField
+    from forestmap_assets.core.score_field import ReferenceField
 
     ref = np.ascontiguousarray(reference_points, dtype=np.float64)
     key = (hashlib.blake2b(ref.tobytes(), digest_size=16).hexdigest(), ref.shape, model)
@@ -893,7 +893,7 @@ def register_pair(
     ``heading_split_scale`` (inferred, speed only; 1 is the thesis's rule) multiplies the
     heading arc when the longest cell dimension is chosen (:meth:`SearchLattice.schedule`).
     """
-    from ..params import RegistrationParams
+    from forestmap_assets.params import RegistrationParams
 
     t0 = time.perf_counter()
     params = params or RegistrationParams()
@@ -924,7 +924,7 @@ def register_pair(
         seed_rad = np.array(seeds, dtype=float).reshape(-1, 4)
         seed_rad[:, 3] = np.radians(seed_rad[:, 3])
     if method == "fast":
-        from .stem_voting import vote_alignments
+        from forestmap_assets.core.stem_voting import vote_alignments
 
         field = reference_field(ref, model)
         starts = vote_alignments(scan, ref, centre, half_widths) if vote else np.zeros((0, 4))
@@ -1015,7 +1015,7 @@ def exhaustive_search(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every final-lattice pose of the box (k, 4: dx, dy, dz, dh_deg) and its exact score by
     k-d tree (the reference for spec 13.4); only for small problems."""
-    from ..params import RegistrationParams
+    from forestmap_assets.params import RegistrationParams
 
     params = params or RegistrationParams()
     scan = np.asarray(scan_points, dtype=float).reshape(-1, 3)

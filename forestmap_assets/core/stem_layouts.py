@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .geometry import rot_z
+from forestmap_assets.core.geometry import rot_z
 
 
 @dataclass

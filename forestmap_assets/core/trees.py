@@ -33,7 +33,7 @@ def cylinders_to_global(per_scan: dict[str, pd.DataFrame], poses: dict[str, tupl
     """Every cylinder of the registered scans in the global frame, with its ``scan`` and
     ``range_m``, the horizontal distance from that scan's sensor to the middle of the cylinder
     axis (the observation range, used to weight radii in :func:`merge_trees`)."""
-    from .geometry import transform_points
+    from forestmap_assets.core.geometry import transform_points
 
     frames = []
     for scan, cyl in per_scan.items():

@@ -42,7 +42,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .forest import (
+from forestmap_assets.sim.forest import (
     KIND_STEM,
     STEM_COLUMNS,
     Forest,
@@ -50,8 +50,14 @@ from .forest import (
     make_forest,
     stems_in_frame,
 )
-from .scanner import RESOLUTION_DIVISOR, ScanPose, ScanResult, VirtualScanner, rot_z
-from .sites import (
+from forestmap_assets.sim.scanner import (
+    RESOLUTION_DIVISOR,
+    ScanPose,
+    ScanResult,
+    VirtualScanner,
+    rot_z,
+)
+from forestmap_assets.sim.sites import (
     PILLAR_COLUMNS,
     SITE_ENVIRONMENT,
     SITES,

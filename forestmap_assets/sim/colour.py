@@ -25,8 +25,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from forestmap_assets.core.colour import hsl_to_rgb
-
-from .forest import KIND_BRANCH, KIND_FOLIAGE, KIND_GROUND, KIND_STEM, KIND_UNDERSTOREY
+from forestmap_assets.sim.forest import (
+    KIND_BRANCH,
+    KIND_FOLIAGE,
+    KIND_GROUND,
+    KIND_STEM,
+    KIND_UNDERSTOREY,
+)
 
 # kind -> base (hue, saturation, lightness) and per-object standard deviations (inferred)
 BASE_HSL = {

@@ -24,8 +24,14 @@ import numpy as np
 from scipy import ndimage
 
 from forestmap_assets.core.range_image import RangeImage, levelling_rotation
-
-from .forest import KIND_BRANCH, KIND_FOLIAGE, KIND_GROUND, KIND_STEM, KIND_UNDERSTOREY, NO_RETURN
+from forestmap_assets.sim.forest import (
+    KIND_BRANCH,
+    KIND_FOLIAGE,
+    KIND_GROUND,
+    KIND_STEM,
+    KIND_UNDERSTOREY,
+    NO_RETURN,
+)
 
 RESOLUTION_DIVISOR = {"full": 1, "half": 2, "quarter": 4}
 
@@ -149,7 +155,7 @@ class VirtualScanner:
         self.mix_min_step_m = mix_min_step_m
         self._dirs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         if colour is True:
-            from .colour import ColourModel
+            from forestmap_assets.sim.colour import ColourModel
 
             colour = ColourModel()
         self.colour = colour or None

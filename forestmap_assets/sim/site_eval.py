@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..core.geometry import wrap_deg
-from ..core.submaps import sample_segments
+from forestmap_assets.core.geometry import wrap_deg
+from forestmap_assets.core.submaps import sample_segments
 
 LINE_EXTRA = ("max_beams", "step_fraction", "hit_margin_m", "min_wall_extent_m",
               "top_tolerance_m", "wall_depth_cells", "border_xy", "link_cells",
@@ -160,9 +160,9 @@ def extract_scan_features(image, params, *, circle_options: dict | None = None) 
     """Segments, circle models, cylinder segments, line segments and the sub-map of one range
     image with ``params`` (a :class:`~forestmap_assets.params.Params`), exactly the core calls
     of the feature assets (``circle_options`` go to ``fit_circle_models``)."""
-    from ..core.cylinders import extract_features
-    from ..core.lines import extract_line_segments
-    from ..core.submaps import build_submap
+    from forestmap_assets.core.cylinders import extract_features
+    from forestmap_assets.core.lines import extract_line_segments
+    from forestmap_assets.core.submaps import build_submap
 
     feats = extract_features(image, params, **(circle_options or {}))
     lp = params.lines
@@ -178,8 +178,8 @@ def campaign_features(folder: str | Path, params=None, *, circle_options: dict |
                       scans: Sequence[str] | None = None, progress=None) -> dict[str, dict]:
     """:func:`extract_scan_features` of every scan of a campaign folder (its own parameters
     unless ``params`` is given): ``{scan id: features}``."""
-    from ..campaign import load_campaign
-    from ..io.readers import read_scan
+    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.io.readers import read_scan
 
     camp = load_campaign(folder)
     p = params or camp.params
@@ -198,7 +198,7 @@ def campaign_features(folder: str | Path, params=None, *, circle_options: dict |
 
 def truth_relative(truth_poses: pd.DataFrame, scan: str, reference: str) -> np.ndarray:
     """True (dx, dy, dz, dheading) of ``scan`` in the levelled frame of ``reference``."""
-    from ..core.geometry import relative_pose
+    from forestmap_assets.core.geometry import relative_pose
 
     t = truth_poses.set_index(truth_poses["scan"].astype(str))
     a = t.loc[str(scan), ["x", "y", "z", "heading_deg"]].to_numpy(float)
@@ -224,7 +224,7 @@ def scan_site(site, *, resolution: str = "full", seed: int = 0, height_m: float 
     """Scan a :class:`~.sites.Site` from each of its scan positions (cart at ``height_m`` above
     the ground, levelled); returns the :class:`~.scanner.ScanResult` list (world poses in
     ``result.pose``)."""
-    from .scanner import ScanPose, VirtualScanner
+    from forestmap_assets.sim.scanner import ScanPose, VirtualScanner
 
     scanner = VirtualScanner(site, resolution=resolution, **(scanner_kwargs or {}))
     xy = np.asarray(site.scan_xy, float).reshape(-1, 2)
@@ -237,7 +237,7 @@ def scan_site(site, *, resolution: str = "full", seed: int = 0, height_m: float 
 
 def relative_truth(scan_pose, reference_pose) -> np.ndarray:
     """True (dx, dy, dz, dheading) between two :class:`~.scanner.ScanPose` (spec 6.1)."""
-    from ..core.geometry import relative_pose
+    from forestmap_assets.core.geometry import relative_pose
 
     return np.asarray(relative_pose(
         (scan_pose.x, scan_pose.y, scan_pose.z, scan_pose.heading_deg),

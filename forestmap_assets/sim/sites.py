@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .forest import (
+from forestmap_assets.sim.forest import (
     BREAST_HEIGHT_M,
     KIND_BRANCH,
     KIND_FOLIAGE,
@@ -292,7 +292,7 @@ class Site:
     pillar_parts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def trees_at_breast_height(self) -> pd.DataFrame:
-        from .forest import breast_height_table
+        from forestmap_assets.sim.forest import breast_height_table
 
         return breast_height_table(self.stems)
 
