@@ -53,8 +53,8 @@ from forest_pairs import campaign_submaps  # noqa: E402
 from results_md import write_section  # noqa: E402
 
 from forestmap_assets.core.fourier import coarse_register, prepare_cloud  # noqa: E402
-from forestmap_assets.core.pair_registrations import judge  # noqa: E402
 from forestmap_assets.core.registration import register_pair  # noqa: E402
+from forestmap_assets.core.registration_.pair_registrations import judge  # noqa: E402
 from forestmap_assets.params import RegistrationParams  # noqa: E402
 
 START, END = "<!-- coarse:start -->", "<!-- coarse:end -->"

@@ -34,8 +34,8 @@ from results_md import write_section  # noqa: E402
 
 from forestmap_assets.core import circles as C  # noqa: E402
 from forestmap_assets.core.circles import final_circles, fit_circle_models  # noqa: E402
-from forestmap_assets.core.cylinders import assemble_cylinders, extract_features  # noqa: E402
-from forestmap_assets.core.segments import segment_scan_lines  # noqa: E402
+from forestmap_assets.core.features.cylinders import assemble_cylinders, extract_features  # noqa: E402
+from forestmap_assets.core.features.segments import segment_scan_lines  # noqa: E402
 from forestmap_assets.params import Params  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results.md"

@@ -82,7 +82,7 @@ def run_pipeline(folder: Path, progress=print) -> None:
 
 def clouds_of(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
     from forestmap_assets.access import load_asset
-    from forestmap_assets.core.colour import rgb_to_hue
+    from forestmap_assets.core.registration_.colour import rgb_to_hue
 
     out = {}
     for sid in pd.read_csv(folder / "truth" / "poses.csv")["scan"]:
@@ -195,8 +195,8 @@ def pipeline_refinement(folder: Path, clouds, truth, progress=print):
 
     from forestmap_assets.access import load_asset
     from forestmap_assets.core.geometry import wrap_deg
-    from forestmap_assets.core.link_selection import select_links
-    from forestmap_assets.core.refine import RefineSettings, refine_registrations
+    from forestmap_assets.core.mapping.link_selection import select_links
+    from forestmap_assets.core.registration_.refine import RefineSettings, refine_registrations
 
     regs = load_asset("pairwise_registrations", campaign=folder)["registrations"]
     accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)

@@ -63,9 +63,9 @@ def temperature_sweep(root: Path, truth: pd.DataFrame, temperatures=SWEEP) -> pd
     return the normalised errors of the admitted correct links (``level = pair``) and of the
     poses (``level = pose``) per T, plus wrong / correct-but-rejected link counts."""
     from forestmap_assets.access import load_asset
-    from forestmap_assets.campaign import load_campaign
-    from forestmap_assets.core.link_selection import select_links
-    from forestmap_assets.core.pair_registrations import tempered_cloud_sigma
+    from forestmap_assets.core.mapping.link_selection import select_links
+    from forestmap_assets.core.registration_.pair_registrations import tempered_cloud_sigma
+    from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.sim.evaluate import pose_errors
 
     camp = load_campaign(root)
@@ -148,10 +148,10 @@ def correlation_products(links: pd.DataFrame, truth: pd.DataFrame) -> tuple[np.n
 
 def run_one(seed: int, args, work: Path) -> dict:
     from forestmap_assets.access import load_asset
-    from forestmap_assets.campaign import load_campaign
-    from forestmap_assets.core.link_selection import select_links
-    from forestmap_assets.core.trees import merge_trees
-    from forestmap_assets.exports import elevation_from_table, write_exports
+    from forestmap_assets.core.mapping.link_selection import select_links
+    from forestmap_assets.core.mapping.trees import merge_trees
+    from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.outputs.exports import elevation_from_table, write_exports
     from forestmap_assets.runner import run_campaign
     from forestmap_assets.sim import simulate_campaign
     from forestmap_assets.sim.evaluate import dbh_errors, evaluate_campaign, pose_errors

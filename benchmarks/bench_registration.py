@@ -66,8 +66,8 @@ from forest_pairs import (  # noqa: E402
 from results_md import write_section  # noqa: E402
 
 from forestmap_assets.core import registration  # noqa: E402
-from forestmap_assets.core.pair_registrations import register_candidates  # noqa: E402
 from forestmap_assets.core.registration import register_pair  # noqa: E402
+from forestmap_assets.core.registration_.pair_registrations import register_candidates  # noqa: E402
 from forestmap_assets.params import ElevationParams, RegistrationParams  # noqa: E402
 
 # (name, seed, plot size m, trees, scans): a dense and an open plot, and a long plot for pairs

@@ -35,8 +35,8 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from results_md import write_section  # noqa: E402
 
-from forestmap_assets.core.chaining import chain_poses, wrap_deg  # noqa: E402
-from forestmap_assets.core.optimal_map import solve_incremental, solve_network  # noqa: E402
+from forestmap_assets.core.mapping.chaining import chain_poses, wrap_deg  # noqa: E402
+from forestmap_assets.core.mapping.optimal_map import solve_incremental, solve_network  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent
 TABLE_6_6 = ROOT.parent / "tests" / "data" / "thesis_tables" / "table_6_6_forest_local.csv"

@@ -26,20 +26,23 @@ import numpy as np
 import pandas as pd
 from results_md import write_section  # noqa: E402
 
-from forestmap_assets.campaign import load_campaign
-from forestmap_assets.core.candidates import candidate_pairs
-from forestmap_assets.core.chained_map import chained_map
-from forestmap_assets.core.chaining import OBSERVATION_COLUMNS
-from forestmap_assets.core.cylinders import extract_features
-from forestmap_assets.core.link_selection import check_link_hypothesis, select_links
-from forestmap_assets.core.pair_checks import (
+from forestmap_assets.core.features.cylinders import extract_features
+from forestmap_assets.core.mapping.chained_map import chained_map
+from forestmap_assets.core.mapping.chaining import OBSERVATION_COLUMNS
+from forestmap_assets.core.mapping.link_selection import check_link_hypothesis, select_links
+from forestmap_assets.core.registration_.candidates import candidate_pairs
+from forestmap_assets.core.registration_.pair_checks import (
     assess_history,
     assess_pair,
     judge_in_box,
     register_in_box,
     search_box,
 )
-from forestmap_assets.core.pair_registrations import observation_sigmas, register_candidates
+from forestmap_assets.core.registration_.pair_registrations import (
+    observation_sigmas,
+    register_candidates,
+)
+from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.params import resolve_params
 from forestmap_assets.sim.campaign import simulate_campaign
 from forestmap_assets.sim.forest import ground_mesh
@@ -260,7 +263,7 @@ def cylinder_weight(folder: Path) -> int:
 
 def with_weight(folder: Path, feats, weight: int) -> dict:
     """The cached features with their sub-maps rebuilt at ``weight`` (cheap)."""
-    from forestmap_assets.core.submaps import build_submap
+    from forestmap_assets.core.registration_.submaps import build_submap
 
     spacing = load_campaign(folder).params.submaps.spacing_m
     return {s: {**f, "submaps": build_submap(f["cylinder_segments"], f["line_segments"], spacing,
@@ -274,7 +277,7 @@ def slide_diagnosis(folder: Path, feats, table: pd.DataFrame) -> tuple[pd.DataFr
     from scipy.spatial import cKDTree
 
     from forestmap_assets.core.geometry import transform_points
-    from forestmap_assets.core.score import ScoreModel
+    from forestmap_assets.core.registration_.score import ScoreModel
 
     model = ScoreModel.from_params(load_campaign(folder).params.registration)
     truth = pd.read_csv(folder / "truth" / "poses.csv", dtype={"scan": str})
@@ -459,7 +462,7 @@ def refined(folder: Path, table: pd.DataFrame, fresh: bool, tag: str) -> pd.Data
     and the structure checks accept; returns ``table`` with those links' refined pose and sigmas
     where the refinement is used (``refined``) and their new error against the truth."""
     from forestmap_assets.assets.refine import refine_settings
-    from forestmap_assets.core.refine import refine_registrations
+    from forestmap_assets.core.registration_.refine import refine_registrations
     from forestmap_assets.io.readers import read_scan
 
     camp = load_campaign(folder)
@@ -652,7 +655,7 @@ def failures(fresh: bool) -> tuple[pd.DataFrame, list[str]]:
         rows.append(failure_row(f"87 (simulated): parallel walls only, {label}", truth, res, st,
                                 why0, why, fig, float(np.hypot(*(peer[:2] - truth[:2])))))
     # the opposite-wall match proper: each sub-map holds one wall of the corridor
-    from forestmap_assets.core.submaps import build_submap
+    from forestmap_assets.core.registration_.submaps import build_submap
 
     def one_line(y, x0, x1):
         t = pd.DataFrame({"line_id": [0], "x0": [x0], "y0": [y], "z0": [1.0], "x1": [x1],

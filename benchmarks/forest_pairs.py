@@ -31,11 +31,11 @@ def campaign_submap_tables(folder: Path, progress=print) -> dict[str, pd.DataFra
         table = pd.read_parquet(cache)
         return {str(s): g.drop(columns="scan").reset_index(drop=True)
                 for s, g in table.groupby("scan", sort=True)}
-    from forestmap_assets.campaign import load_campaign
     from forestmap_assets.core.circles import fit_circle_models
-    from forestmap_assets.core.cylinders import assemble_cylinders
-    from forestmap_assets.core.segments import segment_scan_lines
-    from forestmap_assets.core.submaps import build_submap
+    from forestmap_assets.core.features.cylinders import assemble_cylinders
+    from forestmap_assets.core.features.segments import segment_scan_lines
+    from forestmap_assets.core.registration_.submaps import build_submap
+    from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.io.readers import read_scan
 
     camp = load_campaign(folder)
@@ -59,7 +59,7 @@ def campaign_submap_tables(folder: Path, progress=print) -> dict[str, pd.DataFra
 
 def campaign_submaps(folder: Path, progress=print) -> dict[str, np.ndarray]:
     """Sub-map points (n, 3) per scan id (:func:`campaign_submap_tables`)."""
-    from forestmap_assets.core.submaps import submap_points
+    from forestmap_assets.core.registration_.submaps import submap_points
 
     return {s: submap_points(t) for s, t in campaign_submap_tables(folder, progress).items()}
 
@@ -153,8 +153,8 @@ def campaign_elevation(folder: Path, progress=print) -> dict[str, pd.DataFrame]:
         with np.load(cache) as z:
             ids = sorted({k.split("/")[0] for k in z.files})
             return {s: pd.DataFrame({c: z[f"{s}/{c}"] for c in cols}) for s in ids}
-    from forestmap_assets.campaign import load_campaign
-    from forestmap_assets.core.elevation import elevation_grid
+    from forestmap_assets.core.features.elevation import elevation_grid
+    from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.io.readers import read_scan
 
     camp = load_campaign(folder)

@@ -7,8 +7,8 @@ from pathlib import Path
 import pyarrow as pa
 from upath import UPath
 
-from forestmap_assets.campaign import Campaign, load_campaign
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.io.campaign import Campaign, load_campaign
 from forestmap_assets.io.store import default_store_url, read_bundle, read_table
 
 

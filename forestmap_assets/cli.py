@@ -128,7 +128,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from forestmap_assets.progress import Progress, use
+    from forestmap_assets.outputs.progress import Progress, use
     from forestmap_assets.runner import run_campaign
 
     if args.cloud_spacing < 0:
@@ -148,7 +148,7 @@ def cmd_run(args) -> int:
     if summary.not_built:
         print(f"materialised what exists in {summary.seconds:.1f} s; no exports written to {out} yet")
         return 0
-    from forestmap_assets.exports import write_exports
+    from forestmap_assets.outputs.exports import write_exports
 
     written = write_exports(summary.campaign, out, cloud_spacing_m=None if args.no_cloud else args.cloud_spacing,
                             picture=not args.no_report, report=not args.no_report, progress=progress)
@@ -163,7 +163,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_solve(args) -> int:
-    from forestmap_assets.solve import run_solve
+    from forestmap_assets.outputs.solve import run_solve
 
     order = [s.strip() for s in args.order.split(",") if s.strip()] if args.order else None
     paths = run_solve(args.observations, order=order, out_dir=args.out)
@@ -172,9 +172,9 @@ def cmd_solve(args) -> int:
 
 
 def cmd_status(args) -> int:
-    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.orchestration.workspace import build_definitions
     from forestmap_assets.runner import get_instance, stage_states, sync_partitions
-    from forestmap_assets.workspace import build_definitions
 
     campaign = load_campaign(args.campaign)
     defs = build_definitions([campaign])
@@ -190,9 +190,9 @@ def cmd_status(args) -> int:
 def cmd_ui(args) -> int:
     import subprocess
 
+    from forestmap_assets.orchestration.webserver import webserver_command
+    from forestmap_assets.orchestration.workspace import data_root
     from forestmap_assets.runner import get_instance
-    from forestmap_assets.webserver import webserver_command
-    from forestmap_assets.workspace import data_root
 
     get_instance()  # sets DAGSTER_HOME to the persistent instance
     _say(args, f"Dagster UI on http://{args.host}:{args.port} for the campaigns under {data_root()} "
@@ -227,7 +227,7 @@ COMMANDS = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    from forestmap_assets.progress import one_line
+    from forestmap_assets.outputs.progress import one_line
 
     args = _parser().parse_args(argv)
     warnings.filterwarnings("ignore")

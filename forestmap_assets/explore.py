@@ -38,7 +38,7 @@ import pandas as pd
 import yaml
 
 from forestmap_assets.core.exploration import ExplorationConfig
-from forestmap_assets.core.occlusion import OcclusionConfig
+from forestmap_assets.core.exploration_.occlusion import OcclusionConfig
 from forestmap_assets.sim.campaign import relative_pose, save_npz, scan_ids, visible_trees, wrap_deg
 from forestmap_assets.sim.forest import (
     KIND_UNDERSTOREY,
@@ -346,7 +346,7 @@ def read_map(
     ``current`` (its estimated position), or at ``fallback_xy`` when it is not registered."""
     from forestmap_assets.access import load_asset
     from forestmap_assets.assets.exploration import plan_from_map
-    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.io.campaign import load_campaign
 
     campaign = load_campaign(folder)
     poses = load_asset("optimal_map", campaign=campaign)["poses"]
@@ -630,8 +630,8 @@ def explore(
             break
     steps = pd.DataFrame(rows, columns=STEP_COLUMNS)
     steps.to_csv(out / "explore" / "steps.csv", index=False, float_format="%.4f")
-    from forestmap_assets.campaign import load_campaign
-    from forestmap_assets.exports import write_exports
+    from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.outputs.exports import write_exports
 
     write_exports(load_campaign(out), out / "outputs", **(export_kwargs or {}))
     found, with_dbh, rmse = _tree_counts(out, sm.trees)
@@ -828,8 +828,8 @@ def survey_positions(
     steps.loc[steps.index[-1], "coverage"] = cov
     steps.to_csv(out / "explore" / "steps.csv", index=False, float_format="%.4f")
     _save_plan(out, len(steps) - 1, sm, f"fixed positions, after scan {writer.ids[-1]}")
-    from forestmap_assets.campaign import load_campaign
-    from forestmap_assets.exports import write_exports
+    from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.outputs.exports import write_exports
 
     write_exports(load_campaign(out), out / "outputs", **(export_kwargs or {}))
     found, with_dbh, rmse = _tree_counts(out, sm.trees)

@@ -31,7 +31,7 @@ import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from forestmap_assets.core.range_image import RangeImage, levelling_rotation
+from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
 
 STATUS_COLOURS = {
     "accepted": "#1b7837",
@@ -192,7 +192,7 @@ def range_image_panels(
     models (each row's mark as wide as its circle), (d) the cylinder segments over the range
     image. Axes in degrees of azimuth and elevation; ``azimuth_range`` / ``elevation_range``
     (degrees) zoom in. Panels without data are left out."""
-    from forestmap_assets.core.segments import segment_mask
+    from forestmap_assets.core.features.segments import segment_mask
 
     extent = _angles_extent(image)
     view = (*(azimuth_range or extent[:2]), *(elevation_range or extent[2:]))
@@ -1082,7 +1082,7 @@ def crop_box(
 
 def crop_grid(grid, box: tuple[float, float, float, float]):
     """The part of an :class:`~forestmap_assets.core.elevation.ElevationGrid` inside ``box``."""
-    from forestmap_assets.core.elevation import ElevationGrid
+    from forestmap_assets.core.features.elevation import ElevationGrid
 
     ny, nx = grid.z.shape
     i0 = int(np.clip(np.floor((box[0] - grid.x0) / grid.cell_m), 0, nx))
@@ -1118,7 +1118,7 @@ def remove_spikes(grid, spike_m: float | None = 1.0, window: int = 7, percentile
     loses its value. ``spike_m=None`` keeps every cell."""
     from numpy.lib.stride_tricks import sliding_window_view
 
-    from forestmap_assets.core.elevation import ElevationGrid
+    from forestmap_assets.core.features.elevation import ElevationGrid
 
     z = grid.z
     if spike_m is None or z.size == 0:
@@ -1143,7 +1143,7 @@ def ground_limits(
     """Colour limits of the ground (inferred): percentiles of the 0.6 m rendering grid
     (mean of the 5 lowest 0.1 m cells, spec 9) without spikes (:func:`remove_spikes`), which
     leaves out the branch hits that make some cells metres too high (JP Fig. 12 caption)."""
-    from forestmap_assets.core.elevation import render_grid
+    from forestmap_assets.core.features.elevation import render_grid
 
     coarse = (
         remove_spikes(render_grid(grid, render_cell_m, n_lowest), spike_m) if grid.z.size else grid

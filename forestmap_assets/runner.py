@@ -44,9 +44,9 @@ from dagster._core.storage.defs_state.base import set_defs_state_storage
 from dagster._time import get_current_datetime
 
 from forestmap_assets.assets.common import PIPELINE, asset_key, job_name, scan_partitions
-from forestmap_assets.campaign import Campaign, load_campaign
+from forestmap_assets.io.campaign import Campaign, load_campaign
 from forestmap_assets.io.store import default_store_url, forestmap_home
-from forestmap_assets.workspace import EXECUTORS, build_definitions
+from forestmap_assets.orchestration.workspace import EXECUTORS, build_definitions
 
 Progress = Callable[[str], None]
 

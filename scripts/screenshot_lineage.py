@@ -20,7 +20,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from forestmap_assets.webserver import REPO, start_webserver, stop, wait_ready
+from forestmap_assets.orchestration.webserver import REPO, start_webserver, stop, wait_ready
 
 CHROMIUM_FLAGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",

@@ -20,7 +20,7 @@ import yaml
 from dagster import AssetRecordsFilter, DagsterInstance
 
 from forestmap_assets.assets.common import PIPELINE, asset_key
-from forestmap_assets.campaign import Campaign, load_campaign
+from forestmap_assets.io.campaign import Campaign, load_campaign
 
 _TEMPLATE: dict[str, Path] = {}
 

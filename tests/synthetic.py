@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from forestmap_assets.core.range_image import RangeImage, levelling_rotation
+from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
 
 # Riegl LMS-Z210-like full-resolution grid (spec 1.1): 3000 x 720 pixels, 0.108 deg steps.
 FULL_STEP_DEG = 0.108

@@ -13,7 +13,7 @@ from forestmap_assets.assets.common import (
     cylinder_checks,
     scan_check_thresholds,
 )
-from forestmap_assets.campaign import load_campaign
+from forestmap_assets.io.campaign import load_campaign
 
 
 def _circles(valid: int, rejected: int) -> pd.DataFrame:

@@ -18,10 +18,18 @@ from dagster import (
 from orch_helpers import edit_manifest, materialised_copy
 
 from forestmap_assets.assets.common import asset_key, job_name
-from forestmap_assets.automation import PROCESS_JOB, nightly_reprocessing, process_campaign_job
-from forestmap_assets.campaign import load_campaign
+from forestmap_assets.io.campaign import load_campaign
+from forestmap_assets.orchestration.automation import (
+    PROCESS_JOB,
+    nightly_reprocessing,
+    process_campaign_job,
+)
+from forestmap_assets.orchestration.workspace import (
+    build_definitions,
+    discover_campaign_folders,
+    load_campaigns,
+)
 from forestmap_assets.runner import get_instance, run_campaign
-from forestmap_assets.workspace import build_definitions, discover_campaign_folders, load_campaigns
 
 
 def _defs():

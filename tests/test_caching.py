@@ -19,8 +19,8 @@ from orch_helpers import (
 )
 
 from forestmap_assets.assets.common import CAMPAIGN_STAGES, PIPELINE, SCAN_STAGES
+from forestmap_assets.orchestration.workspace import build_definitions
 from forestmap_assets.runner import get_instance, run_campaign
-from forestmap_assets.workspace import build_definitions
 
 ALL = [s for s, _ in PIPELINE]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from conftest import write_campaign
 
-from forestmap_assets.campaign import CampaignError, load_campaign
+from forestmap_assets.io.campaign import CampaignError, load_campaign
 from forestmap_assets.params import PRESETS, resolve_params
 
 

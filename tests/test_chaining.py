@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.chaining import chain_poses, project_relative, wrap_deg
+from forestmap_assets.core.mapping.chaining import chain_poses, project_relative, wrap_deg
 
 TABLES = Path(__file__).parent / "data" / "thesis_tables"
 POSE = ["x", "y", "z", "heading_deg"]

@@ -18,7 +18,7 @@ from forestmap_assets.core.circles import (
     fit_circle_models,
     fit_circles_2d,
 )
-from forestmap_assets.core.segments import segment_scan_lines
+from forestmap_assets.core.features.segments import segment_scan_lines
 from forestmap_assets.params import CircleParams, SegmentationParams, resolve_params
 
 ENGINES = ["numpy"] + (["numba"] if C.HAVE_NUMBA else [])

@@ -8,7 +8,8 @@ import colorsys
 import numpy as np
 import pytest
 
-from forestmap_assets.core.colour import (
+from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.core.registration_.colour import (
     hsl_to_rgb,
     hue_features,
     hue_filter,
@@ -18,7 +19,6 @@ from forestmap_assets.core.colour import (
     rgb_to_hue,
     table_hue,
 )
-from forestmap_assets.core.range_image import RangeImage
 from forestmap_assets.sim.forest import KIND_FOLIAGE, KIND_GROUND, KIND_STEM
 
 

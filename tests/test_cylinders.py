@@ -10,13 +10,13 @@ import pytest
 from synthetic import Cylinder, Scene, Wall, forest_scene, grid, render, visible_length_m
 
 from forestmap_assets.core.circles import CIRCLE_COLUMNS
-from forestmap_assets.core.cylinders import (
+from forestmap_assets.core.features.cylinders import (
     CYLINDER_COLUMNS,
     assemble_cylinders,
     cylinder_membership,
     extract_features,
 )
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.params import CylinderParams
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core import elevation as E
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features import elevation as E
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.params import ElevationParams
 
 A, B, C = 0.04, -0.03, -1.3  # global ground z = A x + B y + C

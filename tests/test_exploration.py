@@ -8,9 +8,9 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.core import exploration as X
-from forestmap_assets.core.elevation import ElevationGrid
-from forestmap_assets.core.occlusion import detect_occlusions
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.exploration_.occlusion import detect_occlusions
+from forestmap_assets.core.features.elevation import ElevationGrid
+from forestmap_assets.core.features.range_image import RangeImage
 
 
 def _grid(bounds=(0.0, 10.0, 0.0, 10.0), cell=0.5, z_range=(-0.5, 3.0), dz=0.1, plot=None):
@@ -403,15 +403,15 @@ def test_assets_occlusion_and_next_vantage_points(tmp_path):
     from forestmap_assets.assets import campaign_assets
     from forestmap_assets.assets.common import asset_key
     from forestmap_assets.assets.exploration import exploration_assets
-    from forestmap_assets.campaign import load_campaign
-    from forestmap_assets.core.elevation import merge_elevation
-    from forestmap_assets.exports import elevation_to_table
+    from forestmap_assets.core.features.elevation import merge_elevation
+    from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.io.store import (
         ParquetStore,
         default_store_url,
         write_bundle_atomic,
         write_table_atomic,
     )
+    from forestmap_assets.outputs.exports import elevation_to_table
     from forestmap_assets.sim import simulate_campaign
 
     folder = simulate_campaign(

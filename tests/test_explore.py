@@ -7,7 +7,6 @@ import pandas as pd
 import pytest
 import yaml
 
-from forestmap_assets.campaign import load_campaign
 from forestmap_assets.explore import (
     STEP_COLUMNS,
     SurveyWriter,
@@ -16,6 +15,7 @@ from forestmap_assets.explore import (
     make_plot,
     random_positions,
 )
+from forestmap_assets.io.campaign import load_campaign
 
 
 def test_virtual_plot_frames_and_free_positions():

@@ -16,12 +16,13 @@ import pytest
 from conftest import write_campaign
 from upath import UPath
 
-from forestmap_assets.campaign import load_campaign
-from forestmap_assets.core.elevation import ElevationGrid
+from forestmap_assets.core.features.elevation import ElevationGrid
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.core.geometry import transform_points
-from forestmap_assets.core.point_cloud import registered_cloud, voxel_keep
-from forestmap_assets.core.range_image import RangeImage
-from forestmap_assets.exports import (
+from forestmap_assets.core.mapping.point_cloud import registered_cloud, voxel_keep
+from forestmap_assets.io.campaign import load_campaign
+from forestmap_assets.io.store import default_store_url, write_bundle_atomic, write_table_atomic
+from forestmap_assets.outputs.exports import (
     EXPORTS,
     campaign_cloud,
     elevation_to_table,
@@ -31,8 +32,7 @@ from forestmap_assets.exports import (
     write_laz,
     write_ply,
 )
-from forestmap_assets.io.store import default_store_url, write_bundle_atomic, write_table_atomic
-from forestmap_assets.progress import Progress
+from forestmap_assets.outputs.progress import Progress
 
 POSES = pd.DataFrame(
     {

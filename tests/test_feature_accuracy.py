@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.cylinders import extract_features
+from forestmap_assets.core.features.cylinders import extract_features
 from forestmap_assets.io.readers import read_scan
 from forestmap_assets.params import resolve_params
 from forestmap_assets.sim import simulate_campaign

@@ -231,8 +231,8 @@ def test_occupancy_scan_heading_mode_and_argument_checks(room_pair):
 def test_coarse_candidates_centre_no_prior_pairs_on_the_fourier_pose(room_pair):
     import pandas as pd
 
-    from forestmap_assets.core.candidates import candidate_pairs
     from forestmap_assets.core.fourier import coarse_candidates
+    from forestmap_assets.core.registration_.candidates import candidate_pairs
 
     a, b, r_true, t_true = room_pair
     clouds = {"T": a.image.xyz[a.image.valid], "S": b.image.xyz[b.image.valid]}

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.elevation import elevation_grid
+from forestmap_assets.core.features.elevation import elevation_grid
 from forestmap_assets.core.geometry import transform_points
-from forestmap_assets.core.ground_z import ground_dz
+from forestmap_assets.core.registration_.ground_z import ground_dz
 from forestmap_assets.params import ElevationParams
 
 

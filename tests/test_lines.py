@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.core import lines as L
-from forestmap_assets.core.range_image import RangeImage, levelling_rotation
+from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
 from forestmap_assets.params import resolve_params
 
 INDOOR = resolve_params("indoor").lines

@@ -15,13 +15,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.chaining import wrap_deg
-from forestmap_assets.core.link_selection import (
+from forestmap_assets.core.mapping.chaining import wrap_deg
+from forestmap_assets.core.mapping.link_selection import (
     check_link_hypothesis,
     judge_link,
     select_links,
 )
-from forestmap_assets.core.optimal_map import solve_incremental, solve_network
+from forestmap_assets.core.mapping.optimal_map import solve_incremental, solve_network
 
 TABLES = Path(__file__).parent / "data" / "thesis_tables"
 ORDER = list("TSRQON")

@@ -11,7 +11,7 @@ from scipy.sparse.csgraph import connected_components
 
 from forestmap_assets.access import load_asset
 from forestmap_assets.core.geometry import relative_pose, wrap_deg
-from forestmap_assets.core.link_selection import select_links
+from forestmap_assets.core.mapping.link_selection import select_links
 from forestmap_assets.runner import run_campaign
 from forestmap_assets.sim import simulate_campaign
 

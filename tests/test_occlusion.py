@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forestmap_assets.core.occlusion import (
+from forestmap_assets.core.exploration_.occlusion import (
     boundaries_table,
     detect_occlusions,
     occlusion_threshold,
@@ -13,7 +13,7 @@ from forestmap_assets.core.occlusion import (
     pair_masks,
     range_variance,
 )
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
 
 STEP = 0.25  # deg, the thesis's scanner
 

@@ -8,9 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.chaining import chain_poses, project_relative, wrap_deg
-from forestmap_assets.core.optimal_map import solve_incremental, solve_network
-from forestmap_assets.core.residuals import residual_arrays
+from forestmap_assets.core.mapping.chaining import chain_poses, project_relative, wrap_deg
+from forestmap_assets.core.mapping.optimal_map import solve_incremental, solve_network
+from forestmap_assets.core.mapping.residuals import residual_arrays
 
 TABLES = Path(__file__).parent / "data" / "thesis_tables"
 ORDER = list("TSRQON")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import io
 
-from forestmap_assets.progress import Progress, as_progress, one_line, report, use
+from forestmap_assets.outputs.progress import Progress, as_progress, one_line, report, use
 
 
 class Tty(io.StringIO):

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from forestmap_assets.core.range_image import spherical_to_xyz
+from forestmap_assets.core.features.range_image import spherical_to_xyz
 from forestmap_assets.io.projection import (
     estimate_angular_step,
     nearest_per_pixel,

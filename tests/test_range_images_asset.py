@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 from conftest import write_campaign
 
-from forestmap_assets.campaign import load_campaign
-from forestmap_assets.core.range_image import RangeImage, levelling_rotation
-from forestmap_assets.definitions import build_definitions
+from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
+from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.io.store import read_table
+from forestmap_assets.orchestration.definitions import build_definitions
 from forestmap_assets.runner import get_instance, run_campaign, stage_states
 
 

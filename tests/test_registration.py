@@ -11,11 +11,11 @@ from forestmap_assets.core.registration import (
     exhaustive_search,
     register_pair,
 )
-from forestmap_assets.core.score import ScoreModel
+from forestmap_assets.core.registration_.score import ScoreModel
+from forestmap_assets.core.registration_.submaps import build_submap, submap_points
 from forestmap_assets.core.score_field import ReferenceField
-from forestmap_assets.core.stem_layouts import stem_pair
-from forestmap_assets.core.submaps import build_submap, submap_points
 from forestmap_assets.params import RegistrationParams
+from forestmap_assets.sim.stem_layouts import stem_pair
 
 
 def test_score_constants():
@@ -196,7 +196,7 @@ def test_chunked_evaluation_gives_the_same_search(monkeypatch):
 
 
 def test_stem_voting_finds_the_alignment():
-    from forestmap_assets.core.stem_voting import vote_alignments
+    from forestmap_assets.core.registration_.stem_voting import vote_alignments
 
     pa, pb, truth = _stem_points(5)
     hyp = vote_alignments(pb, pa, (0, 0, 0, 0), (6.0, 6.0, 1.0, 180.0))

@@ -15,8 +15,8 @@ from conftest import write_campaign
 from orch_helpers import materialised_since
 
 from forestmap_assets.assets.common import asset_key
-from forestmap_assets.campaign import load_campaign
 from forestmap_assets.io import store
+from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.runner import campaign_lock, get_instance, run_campaign
 
 RUN = (

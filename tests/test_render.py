@@ -8,9 +8,9 @@ import pytest
 from matplotlib.image import imread
 
 from forestmap_assets import figures as F
-from forestmap_assets import render
-from forestmap_assets.core.elevation import ElevationGrid
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.elevation import ElevationGrid
+from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.outputs import render
 
 
 def sloped_grid(n: int = 200, cell: float = 0.1, spike: bool = True) -> ElevationGrid:

@@ -6,8 +6,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.link_selection import select_links
-from forestmap_assets.core.optimal_map import RHO_COLUMNS, shared_scan_covariance, solve_network
+from forestmap_assets.core.mapping.link_selection import select_links
+from forestmap_assets.core.mapping.optimal_map import (
+    RHO_COLUMNS,
+    shared_scan_covariance,
+    solve_network,
+)
 
 SCANS = list("ABCDE")
 TRUE = np.array([[0.0, 0.0, 0.0, 0.0], [6.0, 1.0, 0.2, 0.0], [3.0, 7.0, -0.1, 0.0],

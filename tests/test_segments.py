@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from synthetic import Cylinder, Scene, Wall, grid, render
 
-from forestmap_assets.core.range_image import RangeImage
-from forestmap_assets.core.segments import (
+from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.core.features.segments import (
     SEGMENT_COLUMNS,
     blocking_max_filter,
     occluder_window,

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.sim import ScanPose, VirtualScanner, make_forest, simulate_campaign
 from forestmap_assets.sim.forest import (
     KIND_GROUND,

@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from forestmap_assets.campaign import load_campaign
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.sim.campaign import cart_tilt, scan_ids, simulate_campaign, site_pairs
 from forestmap_assets.sim.forest import KIND_GROUND, make_ground
 from forestmap_assets.sim.scanner import ScanPose, VirtualScanner

@@ -8,9 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.chaining import chain_poses
+from forestmap_assets.core.mapping.chaining import chain_poses
+from forestmap_assets.outputs.solve import SolveInputError, run_solve, solve_observations
 from forestmap_assets.params import MappingParams
-from forestmap_assets.solve import SolveInputError, run_solve, solve_observations
 
 TABLES = Path(__file__).parent / "data" / "thesis_tables"
 COLS = ["scan", "reference", "dx", "dy", "dz", "dheading_deg",

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.core.geometry import compose, relative_pose, transform_points, wrap_deg
-from forestmap_assets.core.trees import cylinders_to_global, ground_under, merge_trees
+from forestmap_assets.core.mapping.trees import cylinders_to_global, ground_under, merge_trees
 
 
 def _cyl(cid, base, lean, r0, r1, z0, z1, n=10):

@@ -5,8 +5,17 @@ from __future__ import annotations
 
 from conftest import write_campaign
 
-from forestmap_assets.webserver import assets_and_checks, start_webserver, stop, wait_ready
-from forestmap_assets.workspace import build_definitions, discover_campaign_folders, load_campaigns
+from forestmap_assets.orchestration.webserver import (
+    assets_and_checks,
+    start_webserver,
+    stop,
+    wait_ready,
+)
+from forestmap_assets.orchestration.workspace import (
+    build_definitions,
+    discover_campaign_folders,
+    load_campaigns,
+)
 
 
 def test_webserver_serves_every_asset_and_check(tmp_path, monkeypatch):

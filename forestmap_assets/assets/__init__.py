@@ -25,7 +25,7 @@ from forestmap_assets.assets.features import feature_assets
 from forestmap_assets.assets.ingest import ingest_assets
 from forestmap_assets.assets.mapping import mapping_assets
 from forestmap_assets.assets.refine import refine_assets
-from forestmap_assets.campaign import Campaign
+from forestmap_assets.io.campaign import Campaign
 
 warnings.filterwarnings("ignore", category=BetaWarning)
 warnings.filterwarnings("ignore", category=PreviewWarning)

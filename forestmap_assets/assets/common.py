@@ -20,7 +20,7 @@ from dagster import (
     MetadataValue,
 )
 
-from forestmap_assets.campaign import Campaign
+from forestmap_assets.io.campaign import Campaign
 
 # Bump a stage's number when its code changes meaning; the parameter hash is appended.
 CODE_VERSIONS: dict[str, str] = {

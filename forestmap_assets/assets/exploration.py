@@ -17,10 +17,10 @@ import pandas as pd
 from dagster import AssetIn, MetadataValue, Output, asset
 
 from forestmap_assets.assets.common import asset_key, data_version, png_metadata, scan_partitions
-from forestmap_assets.campaign import Campaign
 from forestmap_assets.core.exploration import ExplorationConfig, VantagePlan
-from forestmap_assets.core.occlusion import OcclusionConfig
+from forestmap_assets.core.exploration_.occlusion import OcclusionConfig
 from forestmap_assets.figures import range_mask_figure
+from forestmap_assets.io.campaign import Campaign
 
 CODE_VERSIONS = {"occlusion_boundaries": "1", "next_vantage_points": "1"}
 
@@ -49,7 +49,7 @@ def scan_surface(image, config: OcclusionConfig) -> dict[str, pd.DataFrame]:
     """The ``occlusion_boundaries`` bundle of one range image: ``boundaries`` (flagged pixels),
     ``surface`` (observed-surface voxels, levelled scan frame) and ``info`` (one row)."""
     from forestmap_assets.core.exploration import observed_surface
-    from forestmap_assets.core.occlusion import boundaries_table, detect_occlusions
+    from forestmap_assets.core.exploration_.occlusion import boundaries_table, detect_occlusions
 
     ob = detect_occlusions(image, **config.detector_kwargs())
     table = boundaries_table(image, ob)
@@ -107,7 +107,7 @@ def plan_from_map(
     ``integrated_map``: the bundle with ``elevation`` and registered ``scans``. Returns the plan,
     the merged elevation grid and the stems (``x, y, r``)."""
     from forestmap_assets.core.exploration import build_grid, plan_next_vantage
-    from forestmap_assets.exports import elevation_from_table
+    from forestmap_assets.outputs.exports import elevation_from_table
 
     elevation = elevation_from_table(integrated_map["elevation"])
     scans = integrated_map["scans"]
@@ -225,7 +225,7 @@ def exploration_assets(campaign: Campaign) -> list:
         "observed surface between unflagged neighbours as voxels (for the exploration grid).",
     )
     def occlusion_boundaries(context, range_images):
-        from forestmap_assets.core.range_image import RangeImage
+        from forestmap_assets.core.features.range_image import RangeImage
 
         image = RangeImage.from_table(range_images)
         bundle = scan_surface(image, occ_cfg)
@@ -338,8 +338,8 @@ def write_next_vantage_png(campaign: Campaign, path, *, store_url: str | None = 
     """``next_vantage.png`` of a materialised campaign (for the exports and the report): the plan
     recomputed from the stored occlusion boundaries, integrated map and tree list."""
     from forestmap_assets.access import load_asset
-    from forestmap_assets.core.elevation import _atomic_write
     from forestmap_assets.core.exploration import exploration_figure
+    from forestmap_assets.core.features.elevation import _atomic_write
 
     integrated = load_asset("integrated_map", campaign=campaign, store_url=store_url)
     trees = load_asset("tree_list", campaign=campaign, store_url=store_url)

@@ -20,9 +20,9 @@ from forestmap_assets.assets.common import (
     png_metadata,
     scan_partitions,
 )
-from forestmap_assets.campaign import Campaign
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.figures import range_mask_figure
+from forestmap_assets.io.campaign import Campaign
 
 
 def read_campaign_scan(campaign: Campaign, scan_id: str) -> RangeImage:

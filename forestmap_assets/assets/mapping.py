@@ -16,9 +16,9 @@ from dagster import (
 )
 
 from forestmap_assets.assets.common import asset_key, code_version, data_version, png_metadata
-from forestmap_assets.campaign import Campaign
 from forestmap_assets.figures import dbh_histogram, elevation_figure, network_figure
-from forestmap_assets.progress import report
+from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.outputs.progress import report
 
 POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
 
@@ -55,14 +55,14 @@ def poses_table(campaign: Campaign, solution_poses: pd.DataFrame | None) -> pd.D
 
 
 def mapping_assets(campaign: Campaign) -> list:
-    from forestmap_assets.core.candidates import candidate_pairs as make_candidates
-    from forestmap_assets.core.elevation import merge_elevation
-    from forestmap_assets.core.link_selection import select_links
-    from forestmap_assets.core.optimal_map import RHO_COLUMNS
-    from forestmap_assets.core.pair_registrations import register_candidates
-    from forestmap_assets.core.submaps import submap_reach
-    from forestmap_assets.core.trees import cylinders_to_global, merge_trees
-    from forestmap_assets.exports import elevation_from_table, elevation_to_table
+    from forestmap_assets.core.features.elevation import merge_elevation
+    from forestmap_assets.core.mapping.link_selection import select_links
+    from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
+    from forestmap_assets.core.mapping.trees import cylinders_to_global, merge_trees
+    from forestmap_assets.core.registration_.candidates import candidate_pairs as make_candidates
+    from forestmap_assets.core.registration_.pair_registrations import register_candidates
+    from forestmap_assets.core.registration_.submaps import submap_reach
+    from forestmap_assets.outputs.exports import elevation_from_table, elevation_to_table
 
     params = campaign.params
     reference = campaign.scan_ids[0]
@@ -97,8 +97,8 @@ def mapping_assets(campaign: Campaign) -> list:
             k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
         )
         if fourier and len(table) and (table["source"] == "no_prior").any():
+            from forestmap_assets.core.features.range_image import RangeImage
             from forestmap_assets.core.fourier import coarse_candidates
-            from forestmap_assets.core.range_image import RangeImage
 
             images = {sid: RangeImage.from_table(t) for sid, t in (raw.get("range_images") or {}).items()}
             clouds = {sid: im.xyz[im.valid] for sid, im in images.items()}
@@ -162,7 +162,7 @@ def mapping_assets(campaign: Campaign) -> list:
             links = accepted.assign(status=pd.Series(dtype=object), role=pd.Series(dtype=object), step=pd.Series(dtype=int))
             residuals = pd.DataFrame(columns=["scan", "reference", "ex", "ey", "ez", "eheading_deg", "rx", "ry", "rz", "rheading", "verdict"])
         elif mp.method == "chain":  # the thesis's parking lot / corridor maps (spec 8.3)
-            from forestmap_assets.core.chained_map import chained_map
+            from forestmap_assets.core.mapping.chained_map import chained_map
 
             chained = chained_map(accepted, campaign.scan_ids, link_choice=mp.chain_link_choice,
                                   covariance=mp.covariance, residual_sigmas=mp.residual_sigmas,

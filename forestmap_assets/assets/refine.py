@@ -10,13 +10,13 @@ import numpy as np
 from dagster import AssetIn, MetadataValue, Output, asset
 
 from forestmap_assets.assets.common import asset_key, code_version, data_version
-from forestmap_assets.campaign import Campaign
-from forestmap_assets.progress import report
+from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.outputs.progress import report
 
 
 def refine_settings(campaign: Campaign):
     """The campaign's ``refine`` parameter section as :class:`~..core.refine.RefineSettings`."""
-    from forestmap_assets.core.refine import RefineSettings
+    from forestmap_assets.core.registration_.refine import RefineSettings
 
     values = campaign.params.refine.model_dump()
     return RefineSettings(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in values.items()})
@@ -24,7 +24,7 @@ def refine_settings(campaign: Campaign):
 
 def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
     """Levelled points and hue (None without colour) of a stored ``range_images`` table."""
-    from forestmap_assets.core.colour import rgb_to_hue
+    from forestmap_assets.core.registration_.colour import rgb_to_hue
 
     names = set(table.column_names)
     xyz = np.column_stack([table.column(c).to_numpy() for c in "xyz"]).astype(np.float64)
@@ -36,7 +36,7 @@ def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def refine_assets(campaign: Campaign) -> list:
-    from forestmap_assets.core.refine import refine_registrations
+    from forestmap_assets.core.registration_.refine import refine_registrations
 
     def key(stage: str):
         return asset_key(campaign, stage)

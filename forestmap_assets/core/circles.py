@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.range_image import RangeImage
-from forestmap_assets.core.segments import pixel_xyz, segment_pixels
+from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.core.features.segments import pixel_xyz, segment_pixels
 from forestmap_assets.params import CircleParams, SegmentationParams
 
 try:  # optional accelerator: same maths as the numpy engine, fused per circle

@@ -54,9 +54,9 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from forestmap_assets.core.elevation import ElevationGrid
+from forestmap_assets.core.features.elevation import ElevationGrid
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.core.geometry import transform_points
-from forestmap_assets.core.range_image import RangeImage
 
 UNMAPPED, GROUND, OBSTACLE = 0, 1, 2
 CLASS_NAMES = ("unmapped", "ground", "obstacle")

@@ -44,7 +44,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from forestmap_assets.core.colour import hue_features
+from forestmap_assets.core.registration_.colour import hue_features
 
 HISTORY_COLUMNS = ["iteration", "error", "error_m", "n_pairs", "changed"]
 

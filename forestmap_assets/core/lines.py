@@ -30,7 +30,7 @@ import pandas as pd
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.params import LineParams
 
 LINE_COLUMNS = ["line_id", "x0", "y0", "z0", "x1", "y1", "z1", "n_points", "length_m"]

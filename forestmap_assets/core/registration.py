@@ -76,7 +76,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.geometry import wrap_deg
-from forestmap_assets.core.score import ScoreModel
+from forestmap_assets.core.registration_.score import ScoreModel
 
 POSE_COLUMNS = ("dx", "dy", "dz", "dh_deg")
 LEVEL_COLUMNS = (
@@ -799,7 +799,7 @@ def matched_stems(scan_points: np.ndarray, reference_points: np.ndarray, pose_de
     blobs (:func:`~.stem_voting.stem_positions`, ``cell_m``); blobs of at least ``min_points``
     points (0.5 m of stem at 0.05 m spacing) count. One long stem can match hundreds of points,
     so the point count alone cannot tell one coincidence from an overlap."""
-    from forestmap_assets.core.stem_voting import stem_positions
+    from forestmap_assets.core.registration_.stem_voting import stem_positions
 
     b = np.asarray(scan_points, dtype=float).reshape(-1, 3)
     if len(b) == 0 or len(reference_points) == 0:
@@ -924,7 +924,7 @@ def register_pair(
         seed_rad = np.array(seeds, dtype=float).reshape(-1, 4)
         seed_rad[:, 3] = np.radians(seed_rad[:, 3])
     if method == "fast":
-        from forestmap_assets.core.stem_voting import vote_alignments
+        from forestmap_assets.core.registration_.stem_voting import vote_alignments
 
         field = reference_field(ref, model)
         starts = vote_alignments(scan, ref, centre, half_widths) if vote else np.zeros((0, 4))

@@ -38,7 +38,7 @@ import math
 import numba as nb
 import numpy as np
 
-from forestmap_assets.core.score import ScoreModel
+from forestmap_assets.core.registration_.score import ScoreModel
 
 BLOCK = 8  # voxels per block edge (fixed: index arithmetic uses shifts by 3)
 _FAST = {"nsz", "arcp", "contract", "reassoc"}  # fast math, but inf stays meaningful

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
 
 __all__ = [
     "estimate_angular_step",

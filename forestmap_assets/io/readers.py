@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from forestmap_assets.core.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.projection import nearest_per_pixel, project_to_range_image
 
 __all__ = ["SCAN_EXTENSIONS", "ScanReadError", "read_scan"]

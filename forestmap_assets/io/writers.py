@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from forestmap_assets.core.range_image import RangeImage, spherical_to_xyz
+from forestmap_assets.core.features.range_image import RangeImage, spherical_to_xyz
 
 __all__ = ["atomic_write", "scan_points", "write_scan"]
 

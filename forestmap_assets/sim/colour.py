@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from forestmap_assets.core.colour import hsl_to_rgb
+from forestmap_assets.core.registration_.colour import hsl_to_rgb
 from forestmap_assets.sim.forest import (
     KIND_BRANCH,
     KIND_FOLIAGE,

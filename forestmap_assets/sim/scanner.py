@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from forestmap_assets.core.range_image import RangeImage, levelling_rotation
+from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
 from forestmap_assets.sim.forest import (
     KIND_BRANCH,
     KIND_FOLIAGE,

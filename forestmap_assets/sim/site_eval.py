@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.geometry import wrap_deg
-from forestmap_assets.core.submaps import sample_segments
+from forestmap_assets.core.registration_.submaps import sample_segments
 
 LINE_EXTRA = ("max_beams", "step_fraction", "hit_margin_m", "min_wall_extent_m",
               "top_tolerance_m", "wall_depth_cells", "border_xy", "link_cells",
@@ -160,9 +160,9 @@ def extract_scan_features(image, params, *, circle_options: dict | None = None) 
     """Segments, circle models, cylinder segments, line segments and the sub-map of one range
     image with ``params`` (a :class:`~forestmap_assets.params.Params`), exactly the core calls
     of the feature assets (``circle_options`` go to ``fit_circle_models``)."""
-    from forestmap_assets.core.cylinders import extract_features
+    from forestmap_assets.core.features.cylinders import extract_features
     from forestmap_assets.core.lines import extract_line_segments
-    from forestmap_assets.core.submaps import build_submap
+    from forestmap_assets.core.registration_.submaps import build_submap
 
     feats = extract_features(image, params, **(circle_options or {}))
     lp = params.lines
@@ -178,7 +178,7 @@ def campaign_features(folder: str | Path, params=None, *, circle_options: dict |
                       scans: Sequence[str] | None = None, progress=None) -> dict[str, dict]:
     """:func:`extract_scan_features` of every scan of a campaign folder (its own parameters
     unless ``params`` is given): ``{scan id: features}``."""
-    from forestmap_assets.campaign import load_campaign
+    from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.io.readers import read_scan
 
     camp = load_campaign(folder)

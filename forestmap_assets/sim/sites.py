@@ -766,7 +766,7 @@ def visible_line_samples(mesh: SceneMesh, lines: pd.DataFrame, origin: np.ndarra
     ``line_id, x, y, z`` of the visible samples (the truth for recall)."""
     import open3d as o3d
 
-    from forestmap_assets.core.submaps import sample_segments
+    from forestmap_assets.core.registration_.submaps import sample_segments
 
     p0 = lines[["x0", "y0", "z0"]].to_numpy(float)
     p1 = lines[["x1", "y1", "z1"]].to_numpy(float)

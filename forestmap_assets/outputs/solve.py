@@ -17,15 +17,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.chaining import (
+from forestmap_assets.core.mapping.chaining import (
     OBSERVATION_COLUMNS,
     SD_COLUMNS,
     VALUE_COLUMNS,
     chain_poses,
     wrap_deg,
 )
-from forestmap_assets.core.optimal_map import Linearisation, OptimalMap, solve_incremental
-from forestmap_assets.core.residuals import RESIDUAL_COLUMNS, residuals_for_poses
+from forestmap_assets.core.mapping.optimal_map import Linearisation, OptimalMap, solve_incremental
+from forestmap_assets.core.mapping.residuals import RESIDUAL_COLUMNS, residuals_for_poses
 from forestmap_assets.params import MappingParams
 
 POSES_CSV_COLUMNS = (

@@ -15,7 +15,7 @@ from pathlib import Path
 from dagster import Definitions, in_process_executor, multiprocess_executor
 
 from forestmap_assets.assets import campaign_assets, campaign_jobs
-from forestmap_assets.campaign import MANIFEST, Campaign, CampaignError, load_campaign
+from forestmap_assets.io.campaign import MANIFEST, Campaign, CampaignError, load_campaign
 from forestmap_assets.io.store import ParquetStore
 
 REPO_DATA = Path(__file__).resolve().parent.parent / "data"
@@ -49,7 +49,7 @@ def executor_def(name: str | None):
         return multiprocess_executor
     if name == "dask":
         try:
-            from forestmap_assets.executors import packed_dask_executor
+            from forestmap_assets.orchestration.executors import packed_dask_executor
         except ImportError:
             raise ValueError("--executor dask needs the dagster-dask package (pip install dagster-dask)") from None
         return packed_dask_executor
@@ -96,7 +96,7 @@ def build_definitions(
     sensors: list = []
     schedules: list = []
     if automation:
-        from forestmap_assets.automation import automation_definitions
+        from forestmap_assets.orchestration.automation import automation_definitions
 
         extra = automation_definitions(campaigns, scan_jobs)
         jobs.extend(extra["jobs"])

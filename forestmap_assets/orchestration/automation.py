@@ -50,7 +50,7 @@ from dagster import (
 from dagster._core.definitions.data_version import DATA_VERSION_TAG, StaleStatus
 
 from forestmap_assets.assets.common import CAMPAIGN_STAGES, asset_key, job_name, scan_partitions
-from forestmap_assets.campaign import MANIFEST, Campaign, CampaignError, load_campaign
+from forestmap_assets.io.campaign import MANIFEST, Campaign, CampaignError, load_campaign
 
 PROCESS_JOB = "process_campaign"
 CAMPAIGN_TAG = "forestmap/campaign"
@@ -84,7 +84,7 @@ def process_campaign_op(context: OpExecutionContext, config: ProcessCampaignConf
     context.log.info(f"{summary.campaign.name}: {len(summary.ran)} asset partitions materialised "
                      f"in {len(summary.run_ids)} runs ({summary.seconds:.1f} s)")
     if config.exports and summary.ran:
-        from forestmap_assets.exports import write_exports
+        from forestmap_assets.outputs.exports import write_exports
 
         written = write_exports(summary.campaign, summary.campaign.root / "outputs")
         context.log.info("outputs written: " + ", ".join(str(p) for p in written))
@@ -164,8 +164,8 @@ def manifest_fingerprint(root: Path) -> str:
 
 def _campaign_status_fresh(campaign: Campaign, instance) -> bool:
     """Whether every asset of the campaign (fresh definitions) is fresh in the instance."""
+    from forestmap_assets.orchestration.workspace import build_definitions
     from forestmap_assets.runner import stage_states
-    from forestmap_assets.workspace import build_definitions
 
     defs = build_definitions([campaign])
     return all(s.state == "fresh" for s in stage_states(defs, campaign, instance))
@@ -174,7 +174,10 @@ def _campaign_status_fresh(campaign: Campaign, instance) -> bool:
 def build_scan_files_sensor(loaded: list[Campaign], scan_jobs: list):
     """The sensor for the campaigns whose definitions are ``loaded`` (see module docstring);
     ``scan_jobs`` are their per-scan jobs."""
-    from forestmap_assets.workspace import build_definitions, discover_campaign_folders
+    from forestmap_assets.orchestration.workspace import (
+        build_definitions,
+        discover_campaign_folders,
+    )
 
     by_key = {c.key: c for c in loaded}
     manifests = {c.key: manifest_fingerprint(c.root) for c in loaded}
@@ -277,7 +280,7 @@ def _scan_requests(instance, graph, campaign: Campaign, fps: dict[str, str]):
     "stale (changed parameters, scans or code versions); nothing when all is fresh.",
 )
 def nightly_reprocessing(context):
-    from forestmap_assets.workspace import discover_campaign_folders
+    from forestmap_assets.orchestration.workspace import discover_campaign_folders
 
     requests = []
     stamp = context.scheduled_execution_time.strftime("%Y-%m-%d") if context.scheduled_execution_time else "now"

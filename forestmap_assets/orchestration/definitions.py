@@ -12,7 +12,7 @@ nightly schedule and the ``process_campaign`` job (:mod:`forestmap_assets.automa
 
 from __future__ import annotations
 
-from forestmap_assets.workspace import (  # noqa: F401  (re-exported: the public names of this module)
+from forestmap_assets.orchestration.workspace import (  # noqa: F401  (re-exported: the public names of this module)
     EXECUTORS,
     REPO_DATA,
     build_definitions,

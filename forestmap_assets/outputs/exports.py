@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.access import load_asset
-from forestmap_assets.campaign import Campaign
+from forestmap_assets.io.campaign import Campaign
 
 POSES_COLUMNS = [
     "scan",
@@ -141,9 +141,9 @@ def write_exports(
     writes no cloud). ``picture``: render ``map.png``; ``report``: write ``report.html``
     (timings from the Dagster ``instance``). ``progress``: a callable or
     :class:`~forestmap_assets.progress.Progress` (a bar over the files)."""
-    from forestmap_assets.core.elevation import save_elevation_npz
+    from forestmap_assets.core.features.elevation import save_elevation_npz
     from forestmap_assets.figures import elevation_figure, save_png
-    from forestmap_assets.progress import as_progress
+    from forestmap_assets.outputs.progress import as_progress
 
     prog = as_progress(progress)
     out = Path(out)
@@ -195,7 +195,7 @@ def write_exports(
             ("cloud.laz + cloud.ply", lambda p: write_clouds(campaign, poses, out, cloud_spacing_m))
         )
     if picture:
-        from forestmap_assets.render import render_map
+        from forestmap_assets.outputs.render import render_map
 
         steps.append(
             (
@@ -206,7 +206,7 @@ def write_exports(
             )
         )
     if report:
-        from forestmap_assets.report import write_report
+        from forestmap_assets.outputs.report import write_report
 
         steps.append(("report.html", lambda p: write_report(campaign, out, instance=instance)))
     with prog.bar(len(steps), "exports", unit="file") as bar:
@@ -263,7 +263,7 @@ def _json_value(v):
 def campaign_cloud(campaign: Campaign, poses: pd.DataFrame, spacing_m: float) -> pd.DataFrame:
     """The registered point cloud of the campaign from the stored range images (see
     :func:`~forestmap_assets.core.point_cloud.registered_cloud`)."""
-    from forestmap_assets.core.point_cloud import registered_cloud
+    from forestmap_assets.core.mapping.point_cloud import registered_cloud
 
     placed = set(poses.loc[poses["registered"].astype(bool), "scan"])
     scans = {}
@@ -432,7 +432,7 @@ def elevation_to_table(grid) -> pd.DataFrame:
 
 def elevation_from_table(df: pd.DataFrame):
     """Inverse of :func:`elevation_to_table`."""
-    from forestmap_assets.core.elevation import ElevationGrid
+    from forestmap_assets.core.features.elevation import ElevationGrid
 
     if df.empty:
         return ElevationGrid(z=np.full((1, 1), np.nan), x0=0.0, y0=0.0, cell_m=0.1)

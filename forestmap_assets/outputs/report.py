@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.access import load_asset
-from forestmap_assets.campaign import Campaign
+from forestmap_assets.io.campaign import Campaign
 
 TIMING_COLUMNS = [
     "stage",
@@ -223,7 +223,7 @@ def build_report(
     Pictures already written to ``out_dir`` (``map.png``, ``elevation.png``) are embedded;
     the network, residual and DBH figures are drawn here."""
     from forestmap_assets import figures as F
-    from forestmap_assets.exports import elevation_from_table
+    from forestmap_assets.outputs.exports import elevation_from_table
 
     out_dir = Path(out_dir)
     omap = _load("optimal_map", campaign) or {}

@@ -38,7 +38,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.geometry import transform_points, wrap_deg
-from forestmap_assets.core.score import ScoreModel
+from forestmap_assets.core.registration_.score import ScoreModel
 
 SEARCH_KEYS = ("xy_m", "x_m", "y_m", "z_m", "heading_deg", "along_deg", "along_m", "across_m")
 CHECK_COLUMNS = ["support_m", "weak_direction_deg", "rival_ratio", "rival_separation_m",
@@ -364,7 +364,7 @@ def judge_in_box(result, params, centre, half_widths, box_heading_deg: float = 0
     were turned back)."""
     import copy
 
-    from forestmap_assets.core.pair_registrations import judge
+    from forestmap_assets.core.registration_.pair_registrations import judge
 
     frame = getattr(result, "box_frame", None)
     if not box_heading_deg or frame is None or not result.ok:

@@ -73,7 +73,7 @@ EXTRA_COLUMNS = [
 def matched_points(peak_score: float, n_points: int, params: RegistrationParams) -> float:
     """Approximate count of scan points matched at the peak: the score above the all-outlier
     floor divided by the score gain of one perfectly matched point (inferred)."""
-    from forestmap_assets.core.score import ScoreModel
+    from forestmap_assets.core.registration_.score import ScoreModel
 
     model = ScoreModel.from_params(params)
     return float(max(0.0, (peak_score - model.floor(n_points)) / (model.ln_p0 - model.ln_k1)))
@@ -176,7 +176,7 @@ def observation_sigmas(result, sigma_scale: float = 1.0, likelihood_temperature:
 
 
 def _register_one(args):
-    from forestmap_assets.core.pair_checks import register_in_box
+    from forestmap_assets.core.registration_.pair_checks import register_in_box
 
     scan_pts, ref_pts, centre, half, params, box_heading = args
     t0 = time.perf_counter()
@@ -243,7 +243,11 @@ def register_candidates(
             if progress:
                 progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {results[-1].seconds:.1f} s")
 
-    from forestmap_assets.core.pair_checks import assess_history, assess_pair, judge_in_box
+    from forestmap_assets.core.registration_.pair_checks import (
+        assess_history,
+        assess_pair,
+        judge_in_box,
+    )
 
     rows, levels, hyps = [], [], []
     for c, job, res in zip(candidates.itertuples(index=False), jobs, results, strict=True):
@@ -279,7 +283,7 @@ def register_candidates(
             sd[2] = np.hypot(sd[2], feature_z_sd_m)
         extra.update(dz_features=centre[2], sd_z_features=sd[2], z_source="features")
         if status == "accepted" and params.z_from_ground and elevation:
-            from forestmap_assets.core.ground_z import ground_dz
+            from forestmap_assets.core.registration_.ground_z import ground_dz
 
             g = ground_dz(elevation.get(c.scan), elevation.get(c.reference), centre, elevation_cell_m,
                           min_sd_m=ground_min_sd_m)

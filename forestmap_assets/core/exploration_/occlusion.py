@@ -33,7 +33,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.range_image import RangeImage, spherical_to_xyz
+from forestmap_assets.core.features.range_image import RangeImage, spherical_to_xyz
 
 Combine = Literal["spacing", "variance", "either", "both"]
 

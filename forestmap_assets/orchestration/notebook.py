@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from forestmap_assets.campaign import Campaign
 from forestmap_assets.core.geometry import relative_pose
+from forestmap_assets.io.campaign import Campaign
 
 SAMPLE = Path("data") / "sample"
 
@@ -83,7 +83,7 @@ def variant_campaign(
 def stage_table(campaign: Campaign) -> pd.Series:
     """State (``missing`` / ``stale`` / ``fresh``) of every pipeline stage of ``campaign``
     under its own manifest, from Dagster's stale-status resolver (as ``forestmap status``)."""
-    from forestmap_assets.definitions import build_definitions
+    from forestmap_assets.orchestration.definitions import build_definitions
     from forestmap_assets.runner import get_instance, stage_states
 
     states = stage_states(build_definitions([campaign]), campaign, get_instance())

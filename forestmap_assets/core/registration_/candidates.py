@@ -62,7 +62,7 @@ def candidate_pairs(
     xy_m, z_m, heading_deg = (float(v) for v in search)
     rows: list[dict] = []
     if pairs:
-        from forestmap_assets.core.pair_checks import search_box
+        from forestmap_assets.core.registration_.pair_checks import search_box
 
         for scan, ref, prior, *box in pairs:
             dx, dy, dz, dh = (float(v) for v in prior)

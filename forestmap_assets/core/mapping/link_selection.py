@@ -17,9 +17,9 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.chaining import OBSERVATION_COLUMNS, SD_COLUMNS, Covariance
-from forestmap_assets.core.optimal_map import RHO_COLUMNS, MapSolution, solve_network
-from forestmap_assets.core.residuals import COMPONENT_NAMES, normalised_excess
+from forestmap_assets.core.mapping.chaining import OBSERVATION_COLUMNS, SD_COLUMNS, Covariance
+from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS, MapSolution, solve_network
+from forestmap_assets.core.mapping.residuals import COMPONENT_NAMES, normalised_excess
 
 Verdict = Literal["ok", "inconsistent", "untestable"]
 _R = ["rx", "ry", "rz", "rheading"]

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.chaining import Covariance, chain_poses
-from forestmap_assets.core.residuals import residuals_for_poses
+from forestmap_assets.core.mapping.chaining import Covariance, chain_poses
+from forestmap_assets.core.mapping.residuals import residuals_for_poses
 
 RESIDUAL_COLUMNS = ["scan", "reference", "ex", "ey", "ez", "eheading_deg", "rx", "ry", "rz",
                     "rheading", "verdict"]

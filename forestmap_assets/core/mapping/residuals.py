@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.chaining import (
+from forestmap_assets.core.mapping.chaining import (
     Covariance,
     observation_arrays,
     project_relative,

@@ -30,7 +30,7 @@ import scipy.linalg
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from forestmap_assets.core.chaining import (
+from forestmap_assets.core.mapping.chaining import (
     OBSERVATION_COLUMNS,
     POSE_COLUMNS,
     POSE_SD_COLUMNS,
@@ -39,7 +39,7 @@ from forestmap_assets.core.chaining import (
     project_relative,
     wrap_deg,
 )
-from forestmap_assets.core.residuals import residual_arrays, residual_table
+from forestmap_assets.core.mapping.residuals import residual_arrays, residual_table
 
 Linearisation = Literal["projection", "gauss_newton"]
 

@@ -27,7 +27,7 @@ import pandas as pd
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from forestmap_assets.core.range_image import RangeImage, levelling_rotation
+from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
 from forestmap_assets.params import SegmentationParams
 
 SEGMENT_COLUMNS: dict[str, str] = {

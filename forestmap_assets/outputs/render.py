@@ -146,7 +146,7 @@ def ground_surface(
     (:func:`remove_spikes`)."""
     import pyvista as pv
 
-    from forestmap_assets.core.elevation import render_grid
+    from forestmap_assets.core.features.elevation import render_grid
     from forestmap_assets.figures import remove_spikes
 
     coarse = remove_spikes(render_grid(grid, render_cell_m, n_lowest), spike_m)
@@ -420,7 +420,7 @@ def map_figure_mpl(
 ):
     """The same scene with matplotlib's 3-D axes (fallback when VTK cannot render): ground as
     a triangulated surface of the 0.6 m rendering grid, cylinders as thick lines, scan frames."""
-    from forestmap_assets.core.elevation import render_grid
+    from forestmap_assets.core.features.elevation import render_grid
     from forestmap_assets.figures import crop_box, crop_grid, ground_limits, new_figure
 
     fig = new_figure(10.0, 8.0)
