@@ -196,7 +196,8 @@ def pipeline_refinement(folder: Path, clouds, truth, progress=print):
     from forestmap_assets.access import load_asset
     from forestmap_assets.core.geometry import wrap_deg
     from forestmap_assets.core.mapping.link_selection import select_links
-    from forestmap_assets.core.registration_.refine import RefineSettings, refine_registrations
+    from forestmap_assets.core.registration_.refine import refine_registrations
+    from forestmap_assets.params_men import RefineSettings
 
     regs = load_asset("pairwise_registrations", campaign=folder)["registrations"]
     accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)

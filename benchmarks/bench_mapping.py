@@ -148,10 +148,11 @@ def correlation_products(links: pd.DataFrame, truth: pd.DataFrame) -> tuple[np.n
 
 def run_one(seed: int, args, work: Path) -> dict:
     from forestmap_assets.access import load_asset
+    from forestmap_assets.core.features.elevation import elevation_from_table
     from forestmap_assets.core.mapping.link_selection import select_links
     from forestmap_assets.core.mapping.trees import merge_trees
     from forestmap_assets.io.campaign import load_campaign
-    from forestmap_assets.outputs.exports import elevation_from_table, write_exports
+    from forestmap_assets.outputs.exports import write_exports
     from forestmap_assets.runner import run_campaign
     from forestmap_assets.sim import simulate_campaign
     from forestmap_assets.sim.evaluate import dbh_errors, evaluate_campaign, pose_errors

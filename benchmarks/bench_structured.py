@@ -461,7 +461,7 @@ def refined(folder: Path, table: pd.DataFrame, fresh: bool, tag: str) -> pd.Data
     ``refine`` settings, on the levelled raw points of each scan) applied to the links the judge
     and the structure checks accept; returns ``table`` with those links' refined pose and sigmas
     where the refinement is used (``refined``) and their new error against the truth."""
-    from forestmap_assets.assets.refine import refine_settings
+    from forestmap_assets.assets.registration import refine_settings
     from forestmap_assets.core.registration_.refine import refine_registrations
     from forestmap_assets.io.readers import read_scan
 

@@ -148,10 +148,13 @@ def cmd_run(args) -> int:
     if summary.not_built:
         print(f"materialised what exists in {summary.seconds:.1f} s; no exports written to {out} yet")
         return 0
+    from forestmap_assets.orchestration.timings import stage_timings_or_note
     from forestmap_assets.outputs.exports import write_exports
 
+    timings = None if args.no_report else stage_timings_or_note(summary.campaign)
     written = write_exports(summary.campaign, out, cloud_spacing_m=None if args.no_cloud else args.cloud_spacing,
-                            picture=not args.no_report, report=not args.no_report, progress=progress)
+                            picture=not args.no_report, report=not args.no_report, progress=progress,
+                            timings=timings)
     print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
     if summary.check_failures:
         _say(args, f"{len(summary.check_failures)} asset checks failed (listed above)")

@@ -38,7 +38,7 @@ import pandas as pd
 import yaml
 
 from forestmap_assets.core.exploration import ExplorationConfig
-from forestmap_assets.core.exploration_.occlusion import OcclusionConfig
+from forestmap_assets.params_men import OcclusionConfig
 from forestmap_assets.sim.campaign import relative_pose, save_npz, scan_ids, visible_trees, wrap_deg
 from forestmap_assets.sim.forest import (
     KIND_UNDERSTOREY,

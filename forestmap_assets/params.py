@@ -212,7 +212,7 @@ def _section_from_config(name: str, config: type) -> type[_Stage]:
 
 
 def _occlusion_section() -> type[_Stage]:
-    from forestmap_assets.core.exploration_.occlusion import OcclusionConfig
+    from forestmap_assets.params_men import OcclusionConfig
 
     return _section_from_config("OcclusionParams", OcclusionConfig)
 
@@ -224,7 +224,7 @@ def _exploration_section() -> type[_Stage]:
 
 
 def _refine_section() -> type[_Stage]:
-    from forestmap_assets.core.registration_.refine import RefineSettings
+    from forestmap_assets.params_men import RefineSettings
 
     return _section_from_config("RefineParams", RefineSettings)
 

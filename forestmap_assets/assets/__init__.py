@@ -24,13 +24,13 @@ from forestmap_assets.assets.exploration import exploration_assets
 from forestmap_assets.assets.features import feature_assets
 from forestmap_assets.assets.ingest import ingest_assets
 from forestmap_assets.assets.mapping import mapping_assets
-from forestmap_assets.assets.refine import refine_assets
+from forestmap_assets.assets.registration import registration_assets
 from forestmap_assets.io.campaign import Campaign
 
 warnings.filterwarnings("ignore", category=BetaWarning)
 warnings.filterwarnings("ignore", category=PreviewWarning)
 
-STAGE_BUILDERS = [ingest_assets, feature_assets, mapping_assets, refine_assets, exploration_assets]
+STAGE_BUILDERS = [ingest_assets, feature_assets, registration_assets, mapping_assets, exploration_assets]
 
 
 def follows_its_inputs(per_scan: AssetSelection | None = None) -> AutomationCondition:

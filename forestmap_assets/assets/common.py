@@ -14,6 +14,7 @@ from dagster import (
     AssetCheckResult,
     AssetCheckSeverity,
     AssetCheckSpec,
+    AssetIn,
     AssetKey,
     DataVersion,
     DynamicPartitionsDefinition,
@@ -254,3 +255,18 @@ def cylinder_checks(table: pd.DataFrame, limits: ScanCheckThresholds) -> list[As
             metadata={"cylinders": n, "min_cylinders": limits.min_cylinders},
         ),
     ]
+
+
+def all_scans(stage_key) -> AssetIn:
+    """All scan partitions of a per-scan asset; a scan whose partition failed is left out."""
+    return AssetIn(key=stage_key, metadata={"allow_missing_partitions": True})
+
+
+def md_table(df: pd.DataFrame, floatfmt: str = ".3f") -> MetadataValue:
+    if df.empty:
+        return MetadataValue.md("_empty_")
+    cols = list(df.columns)
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for row in df.itertuples(index=False):
+        lines.append("| " + " | ".join(format(v, floatfmt) if isinstance(v, float) else str(v) for v in row) + " |")
+    return MetadataValue.md("\n".join(lines))

@@ -18,9 +18,9 @@ from dagster import AssetIn, MetadataValue, Output, asset
 
 from forestmap_assets.assets.common import asset_key, data_version, png_metadata, scan_partitions
 from forestmap_assets.core.exploration import ExplorationConfig, VantagePlan
-from forestmap_assets.core.exploration_.occlusion import OcclusionConfig
 from forestmap_assets.figures import range_mask_figure
 from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.params_men import OcclusionConfig
 
 CODE_VERSIONS = {"occlusion_boundaries": "1", "next_vantage_points": "1"}
 
@@ -107,7 +107,7 @@ def plan_from_map(
     ``integrated_map``: the bundle with ``elevation`` and registered ``scans``. Returns the plan,
     the merged elevation grid and the stems (``x, y, r``)."""
     from forestmap_assets.core.exploration import build_grid, plan_next_vantage
-    from forestmap_assets.outputs.exports import elevation_from_table
+    from forestmap_assets.core.features.elevation import elevation_from_table
 
     elevation = elevation_from_table(integrated_map["elevation"])
     scans = integrated_map["scans"]

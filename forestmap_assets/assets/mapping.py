@@ -1,5 +1,6 @@
-"""Campaign-level assets: candidate pairs, registrations, optimal map, residual checks,
-integrated map and tree list (thesis ch. 5-7; spec 6-9)."""
+"""Map assets (thesis ch. 6-7; spec 8-10): ``optimal_map`` (links admitted one at a time,
+Lu-Milios minimum-variance poses), ``residual_checks``, ``integrated_map`` (cylinders and
+elevation in the global frame) and ``tree_list``."""
 
 from __future__ import annotations
 
@@ -15,27 +16,18 @@ from dagster import (
     asset,
 )
 
-from forestmap_assets.assets.common import asset_key, code_version, data_version, png_metadata
+from forestmap_assets.assets.common import (
+    all_scans,
+    asset_key,
+    code_version,
+    data_version,
+    md_table,
+    png_metadata,
+)
 from forestmap_assets.figures import dbh_histogram, elevation_figure, network_figure
 from forestmap_assets.io.campaign import Campaign
-from forestmap_assets.outputs.progress import report
 
 POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
-
-
-def _all_scans(stage_key) -> AssetIn:
-    """All scan partitions of a per-scan asset; a scan whose partition failed is left out."""
-    return AssetIn(key=stage_key, metadata={"allow_missing_partitions": True})
-
-
-def _md_table(df: pd.DataFrame, floatfmt: str = ".3f") -> MetadataValue:
-    if df.empty:
-        return MetadataValue.md("_empty_")
-    cols = list(df.columns)
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for row in df.itertuples(index=False):
-        lines.append("| " + " | ".join(format(v, floatfmt) if isinstance(v, float) else str(v) for v in row) + " |")
-    return MetadataValue.md("\n".join(lines))
 
 
 def poses_table(campaign: Campaign, solution_poses: pd.DataFrame | None) -> pd.DataFrame:
@@ -55,92 +47,20 @@ def poses_table(campaign: Campaign, solution_poses: pd.DataFrame | None) -> pd.D
 
 
 def mapping_assets(campaign: Campaign) -> list:
-    from forestmap_assets.core.features.elevation import merge_elevation
+    from forestmap_assets.core.features.elevation import (
+        elevation_from_table,
+        elevation_to_table,
+        merge_elevation,
+    )
     from forestmap_assets.core.mapping.link_selection import select_links
     from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
     from forestmap_assets.core.mapping.trees import cylinders_to_global, merge_trees
-    from forestmap_assets.core.registration_.candidates import candidate_pairs as make_candidates
-    from forestmap_assets.core.registration_.pair_registrations import register_candidates
-    from forestmap_assets.core.registration_.submaps import submap_reach
-    from forestmap_assets.outputs.exports import elevation_from_table, elevation_to_table
 
     params = campaign.params
     reference = campaign.scan_ids[0]
 
     def key(stage: str):
         return asset_key(campaign, stage)
-
-    fourier = params.registration.no_prior_method == "fourier"  # raw points for the coarse step
-
-    @asset(
-        key=key("candidate_pairs"),
-        ins={"submaps": _all_scans(key("submaps")),
-             **({"range_images": _all_scans(key("range_images"))} if fourier else {})},
-        group_name="registration",
-        code_version=code_version(campaign, "candidate_pairs"),
-        description="Which sub-map pairs to register and their search boxes: the campaign's "
-        "a priori pairs, else pairs of overlapping a priori poses, else every pair with a "
-        "no-prior box (full heading circle, xy box of the scans' reach) (thesis 5.4; spec 6.4); "
-        "with registration.no_prior_method 'fourier', no-prior boxes centred on the Fourier coarse "
-        "registration of the raw points (men spec 4).",
-    )
-    def candidate_pairs(context, submaps, **raw):  # raw: {"range_images": ...} with fourier
-        submaps = submaps or {}
-        reg = params.registration
-        pairs = [(p.scan, p.reference, p.a_priori, p.search) for p in campaign.pairs] or None
-        priors = {s.id: s.a_priori for s in campaign.scans if s.a_priori is not None}
-        a_priori = priors if len(priors) == len(campaign.scans) and not pairs else None
-        reach = {sid: submap_reach(df) for sid, df in submaps.items()}
-        table = make_candidates(
-            list(submaps), pairs=[p for p in pairs if p[0] in submaps and p[1] in submaps] if pairs else None,
-            a_priori=a_priori, search=(reg.xy_m, reg.z_m, reg.heading_deg), reach=reach,
-            k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
-        )
-        if fourier and len(table) and (table["source"] == "no_prior").any():
-            from forestmap_assets.core.features.range_image import RangeImage
-            from forestmap_assets.core.fourier import coarse_candidates
-
-            images = {sid: RangeImage.from_table(t) for sid, t in (raw.get("range_images") or {}).items()}
-            clouds = {sid: im.xyz[im.valid] for sid, im in images.items()}
-            table = coarse_candidates(table, clouds, search=(reg.xy_m, reg.z_m, reg.heading_deg),
-                                      progress=lambda m: (context.log.info(m), report(m)))
-        meta = {"pairs": len(table), "source": str(table["source"].iloc[0]) if len(table) else "none",
-                "table": _md_table(table)}
-        return Output(table, metadata=meta, data_version=data_version(table))
-
-    @asset(
-        key=key("pairwise_registrations"),
-        ins={
-            "candidate_pairs": AssetIn(key=key("candidate_pairs")),
-            "submaps": _all_scans(key("submaps")),
-            "elevation_maps": _all_scans(key("elevation_maps")),
-        },
-        group_name="registration",
-        code_version=code_version(campaign, "pairwise_registrations"),
-        description="Globally optimal 4-DoF registration of every candidate pair by branch and "
-        "bound over Olson's score: best cell, score-weighted cloud centre and sigma (JP eq. 6), "
-        "every level's surviving cells, secondary hypotheses (thesis 5.3.3; spec 6.3-6.7); dz "
-        "refined from the ground elevation maps (spec 9's proposed use).",
-    )
-    def pairwise_registrations(context, candidate_pairs, submaps, elevation_maps):
-        bundle = register_candidates(candidate_pairs, submaps or {}, params.registration,
-                                     elevation=elevation_maps or {}, elevation_cell_m=params.elevation.cell_m,
-                                     likelihood_temperature=params.registration.likelihood_temperature,
-                                     heading_temperature=params.registration.heading_temperature,
-                                     ground_min_sd_m=params.registration.ground_min_sd_m,
-                                     feature_z_sd_m=params.registration.feature_z_sd_m,
-                                     progress=lambda m: (context.log.info(m), report(m)))
-        regs = bundle["registrations"]
-        counts = regs["status"].value_counts().to_dict()
-        meta = {
-            "pairs": len(regs),
-            "accepted": int(counts.get("accepted", 0)),
-            "rejected": int(counts.get("rejected", 0)),
-            "failed": int(counts.get("failed", 0)),
-            "median_seconds": float(regs["seconds"].median()) if len(regs) else 0.0,
-            "registrations": _md_table(regs[["scan", "reference", "dx", "dy", "dz", "dheading_deg", "sd_x", "sd_heading_deg", "status", "reason"]]),
-        }
-        return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
     @asset(
         key=key("optimal_map"),
@@ -186,7 +106,7 @@ def mapping_assets(campaign: Campaign) -> list:
             "unregistered": MetadataValue.json(poses.loc[~poses["registered"], "scan"].tolist()),
             "admitted_links": int((links["status"] == "admitted").sum()) if len(links) else 0,
             "rejected_links": int((links["status"] == "rejected").sum()) if len(links) else 0,
-            "poses": _md_table(poses),
+            "poses": md_table(poses),
             "network": png_metadata(network_figure(poses, regs, links, title=f"{campaign.name}: registration network")),
         }
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
@@ -211,7 +131,7 @@ def mapping_assets(campaign: Campaign) -> list:
         bad = residuals[residuals["verdict"] != "ok"] if len(residuals) else residuals
         unplaced = poses.loc[~poses["registered"].astype(bool), "scan"].tolist()
         yield Output(residuals, metadata={"observations": len(residuals), "inconsistent": len(bad),
-                                          "residuals": _md_table(residuals)},
+                                          "residuals": md_table(residuals)},
                      data_version=data_version(residuals))
         yield AssetCheckResult(
             check_name="admitted_links_consistent", passed=bad.empty, severity=AssetCheckSeverity.ERROR,
@@ -226,8 +146,8 @@ def mapping_assets(campaign: Campaign) -> list:
         key=key("integrated_map"),
         ins={
             "optimal_map": AssetIn(key=key("optimal_map")),
-            "cylinder_segments": _all_scans(key("cylinder_segments")),
-            "elevation_maps": _all_scans(key("elevation_maps")),
+            "cylinder_segments": all_scans(key("cylinder_segments")),
+            "elevation_maps": all_scans(key("elevation_maps")),
         },
         deps=[key("residual_checks")],  # built only from a map that passed the residual test
         group_name="map",
@@ -269,4 +189,4 @@ def mapping_assets(campaign: Campaign) -> list:
                 "dbh_histogram": png_metadata(dbh_histogram(trees, title=f"{campaign.name}: DBH of {len(dbh)} trees"))}
         return Output(trees, metadata=meta, data_version=data_version(trees))
 
-    return [candidate_pairs, pairwise_registrations, optimal_map, residual_checks, integrated_map, tree_list]
+    return [optimal_map, residual_checks, integrated_map, tree_list]

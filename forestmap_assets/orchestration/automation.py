@@ -27,6 +27,7 @@ running when ``$FORESTMAP_AUTOMATION`` is ``on``.
 import hashlib
 import json
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 from dagster import (
@@ -36,6 +37,7 @@ from dagster import (
     Config,
     DefaultScheduleStatus,
     DefaultSensorStatus,
+    Definitions,
     Failure,
     OpExecutionContext,
     RunRequest,
@@ -84,9 +86,11 @@ def process_campaign_op(context: OpExecutionContext, config: ProcessCampaignConf
     context.log.info(f"{summary.campaign.name}: {len(summary.ran)} asset partitions materialised "
                      f"in {len(summary.run_ids)} runs ({summary.seconds:.1f} s)")
     if config.exports and summary.ran:
+        from forestmap_assets.orchestration.timings import stage_timings_or_note
         from forestmap_assets.outputs.exports import write_exports
 
-        written = write_exports(summary.campaign, summary.campaign.root / "outputs")
+        timings = stage_timings_or_note(summary.campaign, context.instance)
+        written = write_exports(summary.campaign, summary.campaign.root / "outputs", timings=timings)
         context.log.info("outputs written: " + ", ".join(str(p) for p in written))
 
 
@@ -310,3 +314,11 @@ def automation_definitions(campaigns: list[Campaign], scan_jobs: list) -> dict[s
             "version or an input's data version changed.",
         ))
     return {"jobs": [process_campaign_job], "sensors": sensors, "schedules": [nightly_reprocessing]}
+
+
+def automated_definitions(campaigns: Iterable[Campaign], store_url: str | None = None) -> Definitions:
+    """The workspace's definitions with the automation: every campaign's assets and jobs, plus
+    the scan-file sensor, the nightly schedule and ``process_campaign``."""
+    from forestmap_assets.orchestration.workspace import build_definitions
+
+    return build_definitions(campaigns, store_url, extras=automation_definitions)

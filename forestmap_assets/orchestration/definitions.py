@@ -12,6 +12,7 @@ nightly schedule and the ``process_campaign`` job (:mod:`forestmap_assets.automa
 
 from __future__ import annotations
 
+from forestmap_assets.orchestration.automation import automated_definitions
 from forestmap_assets.orchestration.workspace import (  # noqa: F401  (re-exported: the public names of this module)
     EXECUTORS,
     REPO_DATA,
@@ -23,4 +24,4 @@ from forestmap_assets.orchestration.workspace import (  # noqa: F401  (re-export
     unique_campaigns,
 )
 
-defs = build_definitions(load_campaigns(discover_campaign_folders()), automation=True)
+defs = automated_definitions(load_campaigns(discover_campaign_folders()))

@@ -29,7 +29,7 @@ def campaign_folder(default: str | os.PathLike | None = None) -> Path:
     if default is not None:
         return Path(default).expanduser().resolve()
     here = Path.cwd().resolve()
-    for folder in (here, *here.parents, Path(__file__).resolve().parent.parent):
+    for folder in (here, *here.parents, Path(__file__).resolve().parents[2]):
         if (folder / SAMPLE / "campaign.yaml").is_file():
             return folder / SAMPLE
     raise FileNotFoundError(

@@ -14,7 +14,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 WORKSPACE = REPO / "workspace.yaml"
 
 ASSETS_QUERY = """
@@ -37,11 +37,11 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 def webserver_command(host: str, port: int, dev: bool = False) -> list[str]:
     """``dagster-webserver`` (UI only) or ``dagster dev`` (UI + daemon for sensors, schedules
-    and automation) on ``workspace.yaml``, else on the ``forestmap_assets.definitions`` module."""
+    and automation) on ``workspace.yaml``, else on the ``forestmap_assets.orchestration.definitions`` module."""
     bindir = Path(sys.executable).parent
     cmd = [str(bindir / "dagster"), "dev"] if dev else [str(bindir / "dagster-webserver")]
     cmd += ["-h", host, "-p", str(port)]
-    cmd += ["-w", str(WORKSPACE)] if WORKSPACE.exists() else ["-m", "forestmap_assets.definitions"]
+    cmd += ["-w", str(WORKSPACE)] if WORKSPACE.exists() else ["-m", "forestmap_assets.orchestration.definitions"]
     return cmd
 
 

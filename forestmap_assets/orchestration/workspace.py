@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from dagster import Definitions, in_process_executor, multiprocess_executor
@@ -18,7 +18,7 @@ from forestmap_assets.assets import campaign_assets, campaign_jobs
 from forestmap_assets.io.campaign import MANIFEST, Campaign, CampaignError, load_campaign
 from forestmap_assets.io.store import ParquetStore
 
-REPO_DATA = Path(__file__).resolve().parent.parent / "data"
+REPO_DATA = Path(__file__).resolve().parents[2] / "data"
 EXECUTORS = ("in_process", "multiprocess", "dask")
 
 
@@ -78,12 +78,13 @@ def build_definitions(
     store_url: str | None = None,
     *,
     executor: str | None = None,
-    automation: bool = False,
+    extras: Callable[[list[Campaign], list], dict[str, list]] | None = None,
 ) -> Definitions:
     """Definitions for the given campaigns with the Parquet asset store.
 
     ``executor`` fixes the jobs' executor (default: Dagster's, in-process or multiprocess by
-    run config); ``automation`` adds the sensor, the nightly schedule and ``process_campaign``.
+    run config); ``extras(campaigns, scan_jobs)`` adds jobs, sensors and schedules (the
+    automation: :func:`forestmap_assets.orchestration.automation.automated_definitions`).
     """
     campaigns = unique_campaigns(campaigns)
     assets: list = []
@@ -95,10 +96,8 @@ def build_definitions(
     scan_jobs = jobs[0::2]
     sensors: list = []
     schedules: list = []
-    if automation:
-        from forestmap_assets.orchestration.automation import automation_definitions
-
-        extra = automation_definitions(campaigns, scan_jobs)
+    if extras is not None:
+        extra = extras(campaigns, scan_jobs)
         jobs.extend(extra["jobs"])
         sensors.extend(extra["sensors"])
         schedules.extend(extra["schedules"])

@@ -133,15 +133,15 @@ def write_exports(
     picture: bool = True,
     report: bool = True,
     progress=None,
-    instance=None,
+    timings: pd.DataFrame | None = None,
 ) -> list[Path]:
     """Write every export that the stored assets allow; return the paths.
 
     ``cloud_spacing_m``: voxel size of the point cloud exports (0 keeps every point, None
     writes no cloud). ``picture``: render ``map.png``; ``report``: write ``report.html``
-    (timings from the Dagster ``instance``). ``progress``: a callable or
+    with ``timings``, seconds per stage). ``progress``: a callable or
     :class:`~forestmap_assets.progress.Progress` (a bar over the files)."""
-    from forestmap_assets.core.features.elevation import save_elevation_npz
+    from forestmap_assets.core.features.elevation import elevation_from_table, save_elevation_npz
     from forestmap_assets.figures import elevation_figure, save_png
     from forestmap_assets.outputs.progress import as_progress
 
@@ -208,7 +208,7 @@ def write_exports(
     if report:
         from forestmap_assets.outputs.report import write_report
 
-        steps.append(("report.html", lambda p: write_report(campaign, out, instance=instance)))
+        steps.append(("report.html", lambda p: write_report(campaign, out, timings=timings)))
     with prog.bar(len(steps), "exports", unit="file") as bar:
         for name, write in steps:
             result = write(out / name)
@@ -402,46 +402,3 @@ def read_ply(path: str | Path) -> tuple[pd.DataFrame, list[str]]:
     return pd.DataFrame({name: data[name] for name, _ in fields}), [
         ln[8:] for ln in lines if ln.startswith("comment ")
     ]
-
-
-def elevation_to_table(grid) -> pd.DataFrame:
-    """A merged elevation grid as a sparse table (ix, iy, z) plus its origin columns."""
-    iy, ix = np.nonzero(np.isfinite(grid.z))
-    df = pd.DataFrame(
-        {
-            "ix": ix.astype(np.int32),
-            "iy": iy.astype(np.int32),
-            "z": grid.z[iy, ix].astype(np.float32),
-        }
-    )
-    meta = pd.DataFrame(
-        {
-            "x0": [grid.x0],
-            "y0": [grid.y0],
-            "cell_m": [grid.cell_m],
-            "nx": [grid.z.shape[1]],
-            "ny": [grid.z.shape[0]],
-        }
-    )
-    return (
-        df.assign(**{k: np.repeat(meta[k].to_numpy(), len(df)) for k in meta})
-        if len(df)
-        else df.assign(**{k: pd.Series(dtype=meta[k].dtype) for k in meta})
-    )
-
-
-def elevation_from_table(df: pd.DataFrame):
-    """Inverse of :func:`elevation_to_table`."""
-    from forestmap_assets.core.features.elevation import ElevationGrid
-
-    if df.empty:
-        return ElevationGrid(z=np.full((1, 1), np.nan), x0=0.0, y0=0.0, cell_m=0.1)
-    nx, ny = int(df["nx"].iloc[0]), int(df["ny"].iloc[0])
-    z = np.full((ny, nx), np.nan)
-    z[df["iy"].to_numpy(), df["ix"].to_numpy()] = df["z"].to_numpy()
-    return ElevationGrid(
-        z=z,
-        x0=float(df["x0"].iloc[0]),
-        y0=float(df["y0"].iloc[0]),
-        cell_m=float(df["cell_m"].iloc[0]),
-    )

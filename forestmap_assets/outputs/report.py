@@ -6,9 +6,9 @@ registration network, poses with sigmas, registrations with their status, residu
 the tree list summary with a DBH histogram, the accuracy against the truth of a simulated
 campaign (when ``truth/`` exists), timings per stage, and the resolved parameters.
 
-Timings come from the Dagster instance: for each stage, the step durations of the runs that
-materialised its current outputs (per-scan stages: the latest materialisation of each scan,
-summed); the registrations table adds each pair's search time.
+Timings (seconds per stage) are given by the caller
+(:func:`forestmap_assets.orchestration.timings.stage_timings` reads them from the Dagster
+instance); the registrations table adds each pair's search time.
 """
 
 from __future__ import annotations
@@ -27,15 +27,6 @@ import pandas as pd
 
 from forestmap_assets.access import load_asset
 from forestmap_assets.io.campaign import Campaign
-
-TIMING_COLUMNS = [
-    "stage",
-    "granularity",
-    "outputs",
-    "seconds",
-    "slowest_seconds",
-    "last_materialised",
-]
 
 CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:1.5em auto;
@@ -63,71 +54,6 @@ details{margin:.5em 0}pre{background:#f7f7f7;padding:.6em;overflow:auto;font-siz
 # data
 
 
-def stage_timings(campaign: Campaign, instance=None) -> pd.DataFrame:
-    """Seconds per pipeline stage from the Dagster instance (see the module docstring)."""
-    from dagster import AssetKey
-    from dagster._core.event_api import AssetRecordsFilter
-
-    from forestmap_assets.assets.common import PIPELINE
-
-    if instance is None:
-        from forestmap_assets.runner import get_instance
-
-        instance = get_instance()
-    step_cache: dict[str, dict[str, float]] = {}
-
-    def durations(run_id: str) -> dict[str, float]:
-        if run_id not in step_cache:
-            stats = instance.get_run_step_stats(run_id)
-            step_cache[run_id] = {
-                s.step_key: float(s.end_time - s.start_time)
-                for s in stats
-                if s.start_time is not None and s.end_time is not None
-            }
-        return step_cache[run_id]
-
-    rows = []
-    for stage, granularity in PIPELINE:
-        key = AssetKey([campaign.key, stage])
-        records = instance.fetch_materializations(
-            AssetRecordsFilter(asset_key=key), limit=max(200, 8 * len(campaign.scans))
-        ).records
-        latest: dict[str | None, object] = {}
-        for rec in records:  # newest first
-            part = rec.asset_materialization.partition if rec.asset_materialization else None
-            if granularity == "scan" and part not in campaign.scan_ids:
-                continue
-            latest.setdefault(part, rec)
-        if not latest:
-            rows.append(
-                dict(
-                    stage=stage,
-                    granularity=granularity,
-                    outputs=0,
-                    seconds=np.nan,
-                    slowest_seconds=np.nan,
-                    last_materialised="",
-                )
-            )
-            continue
-        secs = []
-        for rec in latest.values():
-            entry = rec.event_log_entry
-            secs.append(durations(entry.run_id).get(entry.step_key or "", np.nan))
-        newest = max(rec.event_log_entry.timestamp for rec in latest.values())
-        rows.append(
-            dict(
-                stage=stage,
-                granularity=granularity,
-                outputs=len(latest),
-                seconds=float(np.nansum(secs)),
-                slowest_seconds=float(np.nanmax(secs)) if np.isfinite(secs).any() else np.nan,
-                last_materialised=datetime.fromtimestamp(newest, UTC).strftime(
-                    "%Y-%m-%d %H:%M:%S UTC"
-                ),
-            )
-        )
-    return pd.DataFrame(rows, columns=TIMING_COLUMNS)
 
 
 def _load(name: str, campaign: Campaign):
@@ -216,14 +142,14 @@ def _card(value, label: str, state: str = "") -> str:
 
 
 def build_report(
-    campaign: Campaign, out_dir: str | Path, *, instance=None, timings: pd.DataFrame | None = None
+    campaign: Campaign, out_dir: str | Path, *, timings: pd.DataFrame | None = None
 ) -> str:
     """The HTML text of ``report.html`` for a materialised campaign (see the module docstring).
 
     Pictures already written to ``out_dir`` (``map.png``, ``elevation.png``) are embedded;
     the network, residual and DBH figures are drawn here."""
     from forestmap_assets import figures as F
-    from forestmap_assets.outputs.exports import elevation_from_table
+    from forestmap_assets.core.features.elevation import elevation_from_table
 
     out_dir = Path(out_dir)
     omap = _load("optimal_map", campaign) or {}
@@ -236,10 +162,7 @@ def build_report(
     regs = regs_bundle.get("registrations")
     mp = campaign.params.mapping
     if timings is None:
-        try:
-            timings = stage_timings(campaign, instance)
-        except Exception as exc:  # the report must not fail on the run history
-            timings = pd.DataFrame({"stage": [f"timings unavailable: {exc}"]})
+        timings = pd.DataFrame({"stage": ["timings unavailable: no run history given"]})
 
     n_scans = len(campaign.scans)
     n_reg = int(poses["registered"].astype(bool).sum()) if poses is not None else 0
@@ -477,11 +400,11 @@ def build_report(
 
 
 def write_report(
-    campaign: Campaign, out_dir: str | Path, *, instance=None, timings: pd.DataFrame | None = None
+    campaign: Campaign, out_dir: str | Path, *, timings: pd.DataFrame | None = None
 ) -> Path:
     """Write ``out_dir/report.html`` atomically; return its path."""
     out_dir = Path(out_dir)
-    text = build_report(campaign, out_dir, instance=instance, timings=timings)
+    text = build_report(campaign, out_dir, timings=timings)
     path = out_dir / "report.html"
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -34,46 +34,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.features.range_image import RangeImage, spherical_to_xyz
-
-Combine = Literal["spacing", "variance", "either", "both"]
-
-
-@dataclass(frozen=True)
-class OcclusionConfig:
-    """Parameters of :func:`detect_occlusions` and of the observed-surface voxels derived from
-    it (:func:`~.exploration.observed_surface`): thesis thresholds 5 deg / 5 deg (men_spec 3.1.2);
-    ``variance_threshold_m`` not stated (0.3 m inferred); surface sampling inferred."""
-
-    alpha_thr_deg: float = 5.0
-    beta_thr_deg: float = 5.0
-    variance_threshold_m: float = 0.3
-    combine: Combine = "spacing"
-    ratio_cutoff: float | None = None
-    exact_angles: bool = True
-    surface_voxel_m: float = 0.05
-    fill_step_m: float = 0.1
-    max_fill_m: float = 2.0
-
-    @classmethod
-    def from_params(cls, section=None, **overrides) -> OcclusionConfig:
-        """From a pydantic parameter section (or dict) with the same keys; unknown keys ignored."""
-        from dataclasses import fields
-
-        values = section.model_dump() if hasattr(section, "model_dump") else dict(section or {})
-        values.update(overrides)
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in values.items() if k in names})
-
-    def detector_kwargs(self) -> dict:
-        return {
-            "alpha_thr_deg": self.alpha_thr_deg,
-            "beta_thr_deg": self.beta_thr_deg,
-            "variance_threshold_m": self.variance_threshold_m,
-            "combine": self.combine,
-            "ratio_cutoff": self.ratio_cutoff,
-            "exact_angles": self.exact_angles,
-        }
-
+from forestmap_assets.params_men import Combine
 
 BOUNDARY_COLUMNS = [
     "row",

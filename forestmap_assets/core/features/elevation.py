@@ -285,3 +285,44 @@ def elevation_png(
     ax.set_title(title)
     fig.tight_layout()
     return _atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=dpi))
+
+
+def elevation_to_table(grid) -> pd.DataFrame:
+    """A merged elevation grid as a sparse table (ix, iy, z) plus its origin columns."""
+    iy, ix = np.nonzero(np.isfinite(grid.z))
+    df = pd.DataFrame(
+        {
+            "ix": ix.astype(np.int32),
+            "iy": iy.astype(np.int32),
+            "z": grid.z[iy, ix].astype(np.float32),
+        }
+    )
+    meta = pd.DataFrame(
+        {
+            "x0": [grid.x0],
+            "y0": [grid.y0],
+            "cell_m": [grid.cell_m],
+            "nx": [grid.z.shape[1]],
+            "ny": [grid.z.shape[0]],
+        }
+    )
+    return (
+        df.assign(**{k: np.repeat(meta[k].to_numpy(), len(df)) for k in meta})
+        if len(df)
+        else df.assign(**{k: pd.Series(dtype=meta[k].dtype) for k in meta})
+    )
+
+
+def elevation_from_table(df: pd.DataFrame):
+    """Inverse of :func:`elevation_to_table`."""
+    if df.empty:
+        return ElevationGrid(z=np.full((1, 1), np.nan), x0=0.0, y0=0.0, cell_m=0.1)
+    nx, ny = int(df["nx"].iloc[0]), int(df["ny"].iloc[0])
+    z = np.full((ny, nx), np.nan)
+    z[df["iy"].to_numpy(), df["ix"].to_numpy()] = df["z"].to_numpy()
+    return ElevationGrid(
+        z=z,
+        x0=float(df["x0"].iloc[0]),
+        y0=float(df["y0"].iloc[0]),
+        cell_m=float(df["cell_m"].iloc[0]),
+    )

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import numpy as np
 import pandas as pd
@@ -62,6 +62,7 @@ from forestmap_assets.core.hicp import (
     pose4_to_matrix,
     pose_sd,
 )
+from forestmap_assets.params_men import RefineSettings
 
 POSE = ["dx", "dy", "dz", "dheading_deg"]
 SD = ["sd_x", "sd_y", "sd_z", "sd_heading_deg"]
@@ -72,38 +73,6 @@ REFINE_COLUMNS = [
     "fit_refined_m", "pairs_bnb", "pairs_refined", "iterations", "converged", "at_box_edge",
     "hue_offset", "n_data", "n_model", "seconds",
 ]
-
-
-@dataclass(frozen=True)
-class RefineSettings:
-    """Settings of the refinement (all inferred; see module doc)."""
-
-    method: str = "auto"  # auto | hicp | icp | point_to_plane | none
-    weight: float = 0.05  # hue weight; 0.05 was best on real data (men spec 5.8, Table 5.3)
-    hue_offset: bool = True  # remove the median hue difference between the scans first
-    plane_polish: bool = True  # finish HICP with robust 4-DoF point-to-plane steps
-    scale: str = "isotropic"
-    hue_mode: str = "linear"
-    max_range_m: float = 20.0
-    z_band_m: tuple[float, float] = (-10.0, 1.5)  # relative to each sensor: drops the canopy
-    overlap_margin_m: float = 0.5
-    data_voxel_m: float = 0.1
-    model_voxel_m: float = 0.02
-    radius_m: float = 0.2
-    box_sigmas: float = 3.0
-    max_iterations: int = 100
-    normal_k: int = 20
-    correlation_m: float = 0.5
-    sd_floor_m: float = 0.004
-    sd_floor_z_m: float = 0.002
-    sd_floor_deg: float = 0.012
-    sd_inflation: float = 1.8  # the ICP-Hessian sigmas are multiplied by this before the floors
-    min_pairs: int = 200
-    min_fit_gain: float = 0.0  # relative: the refined fit must be lower by this share
-    # point-to-plane: the number of 4-DoF Gauss-Newton steps, and Open3D's 6-DoF ICP first
-    plane_iterations: int = 30
-    open3d_start: bool = True
-    robust_k: float | None = 4.685  # Tukey's biweight constant (95 % efficiency); None: least squares
 
 
 def _crop(points: np.ndarray, max_range_m: float, z_band) -> np.ndarray:

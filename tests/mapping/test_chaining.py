@@ -14,7 +14,7 @@ import pytest
 
 from forestmap_assets.core.mapping.chaining import chain_poses, project_relative, wrap_deg
 
-TABLES = Path(__file__).parent / "data" / "thesis_tables"
+TABLES = Path(__file__).parents[1] / "data" / "thesis_tables"
 POSE = ["x", "y", "z", "heading_deg"]
 SD = ["sd_x", "sd_y", "sd_z", "sd_heading_deg"]
 VAL = ["dx", "dy", "dz", "dheading_deg"]

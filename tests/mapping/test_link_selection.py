@@ -23,7 +23,7 @@ from forestmap_assets.core.mapping.link_selection import (
 )
 from forestmap_assets.core.mapping.optimal_map import solve_incremental, solve_network
 
-TABLES = Path(__file__).parent / "data" / "thesis_tables"
+TABLES = Path(__file__).parents[1] / "data" / "thesis_tables"
 ORDER = list("TSRQON")
 VAL = ["dx", "dy", "dz", "dheading_deg"]
 SD = ["sd_x", "sd_y", "sd_z", "sd_heading_deg"]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from conftest import write_campaign
+from helpers.campaign_files import write_campaign
 
 from forestmap_assets.io.campaign import CampaignError, load_campaign
 from forestmap_assets.params import PRESETS, resolve_params

@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
-from conftest import write_campaign
-from orch_helpers import materialised_since
+from helpers.campaign_files import write_campaign
+from helpers.orchestration import materialised_since
 
 from forestmap_assets.assets.common import asset_key
 from forestmap_assets.io import store

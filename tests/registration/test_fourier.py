@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from colour_scenes import mesh_samples, random_rotation, room_mesh
+from helpers.colour_scenes import mesh_samples, random_rotation, room_mesh
 from scipy import special
 
 from forestmap_assets.core.fourier import (

@@ -7,7 +7,6 @@ import shutil
 from datetime import UTC, datetime
 
 import numpy as np
-from conftest import write_campaign
 from dagster import (
     RunRequest,
     SensorResult,
@@ -15,17 +14,18 @@ from dagster import (
     build_sensor_context,
     evaluate_automation_conditions,
 )
-from orch_helpers import edit_manifest, materialised_copy
+from helpers.campaign_files import write_campaign
+from helpers.orchestration import edit_manifest, materialised_copy
 
 from forestmap_assets.assets.common import asset_key, job_name
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.orchestration.automation import (
     PROCESS_JOB,
+    automated_definitions,
     nightly_reprocessing,
     process_campaign_job,
 )
 from forestmap_assets.orchestration.workspace import (
-    build_definitions,
     discover_campaign_folders,
     load_campaigns,
 )
@@ -33,7 +33,7 @@ from forestmap_assets.runner import get_instance, run_campaign
 
 
 def _defs():
-    return build_definitions(load_campaigns(discover_campaign_folders()), automation=True)
+    return automated_definitions(load_campaigns(discover_campaign_folders()))
 
 
 def _tick(defs, instance, cursor=None) -> SensorResult:
@@ -131,7 +131,7 @@ def test_campaign_level_assets_follow_changed_inputs_only(tmp_path, monkeypatch)
     root = materialised_copy(tmp_path, monkeypatch)
     instance = get_instance()
     c = load_campaign(root)
-    defs = build_definitions([c], automation=True)
+    defs = automated_definitions([c])
     baseline = evaluate_automation_conditions(defs=defs, instance=instance)
     assert baseline.total_requested == 0
 
@@ -139,7 +139,7 @@ def test_campaign_level_assets_follow_changed_inputs_only(tmp_path, monkeypatch)
     edit_manifest(root, params={"cylinders": {"min_length_m": 3.0}})
     run_campaign(root, progress=lambda m: None, stages=["submaps", "cylinder_segments"])
     c = load_campaign(root)
-    defs = build_definitions([c], automation=True)
+    defs = automated_definitions([c])
     tick = evaluate_automation_conditions(defs=defs, instance=instance, cursor=baseline.cursor)
     requested = {k.path[-1] for k in (asset_key(c, s) for s in (
         "candidate_pairs", "pairwise_registrations", "optimal_map", "residual_checks", "integrated_map", "tree_list",

@@ -223,7 +223,7 @@ def test_fast_search_corridor_pair_has_a_result():
 
     from forestmap_assets.params import resolve_params
 
-    d = np.load(Path(__file__).parent / "data" / "corridor_pair.npz")
+    d = np.load(Path(__file__).parents[1] / "data" / "corridor_pair.npz")
     reg = resolve_params("indoor").registration
     r = register_pair(d["scan"], d["ref"], tuple(d["centre"]), tuple(d["half"]), reg)
     assert r.status == "ok"

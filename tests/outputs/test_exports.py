@@ -13,10 +13,10 @@ import laspy
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import write_campaign
+from helpers.campaign_files import write_campaign
 from upath import UPath
 
-from forestmap_assets.core.features.elevation import ElevationGrid
+from forestmap_assets.core.features.elevation import ElevationGrid, elevation_to_table
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.core.geometry import transform_points
 from forestmap_assets.core.mapping.point_cloud import registered_cloud, voxel_keep
@@ -25,7 +25,6 @@ from forestmap_assets.io.store import default_store_url, write_bundle_atomic, wr
 from forestmap_assets.outputs.exports import (
     EXPORTS,
     campaign_cloud,
-    elevation_to_table,
     read_ply,
     write_exports,
     write_geojson,

@@ -403,7 +403,7 @@ def test_assets_occlusion_and_next_vantage_points(tmp_path):
     from forestmap_assets.assets import campaign_assets
     from forestmap_assets.assets.common import asset_key
     from forestmap_assets.assets.exploration import exploration_assets
-    from forestmap_assets.core.features.elevation import merge_elevation
+    from forestmap_assets.core.features.elevation import elevation_to_table, merge_elevation
     from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.io.store import (
         ParquetStore,
@@ -411,7 +411,6 @@ def test_assets_occlusion_and_next_vantage_points(tmp_path):
         write_bundle_atomic,
         write_table_atomic,
     )
-    from forestmap_assets.outputs.exports import elevation_to_table
     from forestmap_assets.sim import simulate_campaign
 
     folder = simulate_campaign(

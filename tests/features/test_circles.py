@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
-from synthetic import Box, Cylinder, Scene, grid, render
+from helpers.synthetic import Box, Cylinder, Scene, grid, render
 
 from forestmap_assets.core import circles as C
 from forestmap_assets.core.circles import (

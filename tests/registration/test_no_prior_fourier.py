@@ -4,7 +4,7 @@ coarse registration of the raw points (men spec 4) and searched in the forest bo
 from __future__ import annotations
 
 import pandas as pd
-from orch_helpers import edit_manifest
+from helpers.orchestration import edit_manifest
 
 from forestmap_assets.access import load_asset
 from forestmap_assets.io.campaign import load_campaign

@@ -12,7 +12,7 @@ from forestmap_assets.core.mapping.chaining import chain_poses, project_relative
 from forestmap_assets.core.mapping.optimal_map import solve_incremental, solve_network
 from forestmap_assets.core.mapping.residuals import residual_arrays
 
-TABLES = Path(__file__).parent / "data" / "thesis_tables"
+TABLES = Path(__file__).parents[1] / "data" / "thesis_tables"
 ORDER = list("TSRQON")
 POSE = ["x", "y", "z", "heading_deg"]
 SD = ["sd_x", "sd_y", "sd_z", "sd_heading_deg"]

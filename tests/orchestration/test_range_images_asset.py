@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from conftest import write_campaign
+from helpers.campaign_files import write_campaign
 
 from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
 from forestmap_assets.io.campaign import load_campaign

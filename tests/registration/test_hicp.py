@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from colour_scenes import (
+from helpers.colour_scenes import (
     angle_deg,
     blob,
     building,
@@ -228,7 +228,8 @@ def _scene_views(seed=0):
 
 @pytest.mark.parametrize("colour", [True, False], ids=["hicp", "point-to-plane"])
 def test_refine_pair_improves_branch_and_bound_pose_within_its_box(colour):
-    from forestmap_assets.core.registration_.refine import RefineSettings, refine_pair
+    from forestmap_assets.core.registration_.refine import refine_pair
+    from forestmap_assets.params_men import RefineSettings
 
     scan, h_scan, ref, h_ref, truth = _scene_views()
     settings = RefineSettings(data_voxel_m=0.1, model_voxel_m=0.0, radius_m=0.3, z_band_m=(-20.0, 20.0),

@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
-from synthetic import Cylinder, Scene, Wall, forest_scene, grid, render, visible_length_m
+from helpers.synthetic import Cylinder, Scene, Wall, forest_scene, grid, render, visible_length_m
 
 from forestmap_assets.core.circles import CIRCLE_COLUMNS
 from forestmap_assets.core.features.cylinders import (

@@ -3,8 +3,9 @@ every asset and asset check of the definitions through its GraphQL API (issue 6)
 
 from __future__ import annotations
 
-from conftest import write_campaign
+from helpers.campaign_files import write_campaign
 
+from forestmap_assets.orchestration.automation import automated_definitions
 from forestmap_assets.orchestration.webserver import (
     assets_and_checks,
     start_webserver,
@@ -12,7 +13,6 @@ from forestmap_assets.orchestration.webserver import (
     wait_ready,
 )
 from forestmap_assets.orchestration.workspace import (
-    build_definitions,
     discover_campaign_folders,
     load_campaigns,
 )
@@ -22,7 +22,7 @@ def test_webserver_serves_every_asset_and_check(tmp_path, monkeypatch):
     data = tmp_path / "data"
     write_campaign(data / "plot", scans=("T", "S"))
     monkeypatch.setenv("FORESTMAP_DATA_ROOT", str(data))
-    defs = build_definitions(load_campaigns(discover_campaign_folders()), automation=True)
+    defs = automated_definitions(load_campaigns(discover_campaign_folders()))
     graph = defs.resolve_asset_graph()
     expected: dict[str, list[str]] = {k.to_user_string(): [] for k in graph.get_all_asset_keys()}
     for check in graph.asset_check_keys:

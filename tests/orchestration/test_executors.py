@@ -6,8 +6,8 @@ from __future__ import annotations
 import os
 
 import pytest
-from conftest import write_campaign
 from dagster import DagsterEventType
+from helpers.campaign_files import write_campaign
 
 from forestmap_assets.io.store import read_table
 from forestmap_assets.runner import get_instance, run_campaign

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pandas as pd
 from dagster import AssetCheckSeverity
-from orch_helpers import materialised_copy
+from helpers.orchestration import materialised_copy
 
 from forestmap_assets.assets.common import (
     ScanCheckThresholds,

@@ -12,7 +12,7 @@ from forestmap_assets.core.mapping.chaining import chain_poses
 from forestmap_assets.outputs.solve import SolveInputError, run_solve, solve_observations
 from forestmap_assets.params import MappingParams
 
-TABLES = Path(__file__).parent / "data" / "thesis_tables"
+TABLES = Path(__file__).parents[1] / "data" / "thesis_tables"
 COLS = ["scan", "reference", "dx", "dy", "dz", "dheading_deg",
         "sd_x", "sd_y", "sd_z", "sd_heading_deg"]
 POSES_HEADER = "scan,x,y,z,heading_deg,sd_x,sd_y,sd_z,sd_heading_deg,registered"

@@ -6,7 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
-from synthetic import Cylinder, Scene, Wall, grid, render
+from helpers.synthetic import Cylinder, Scene, Wall, grid, render
 
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.core.features.segments import (

@@ -6,7 +6,7 @@ per-scan assets and the campaign-level ones; ``forestmap status`` says so before
 from __future__ import annotations
 
 import yaml
-from orch_helpers import (
+from helpers.orchestration import (
     campaign,
     cursor,
     data_versions,

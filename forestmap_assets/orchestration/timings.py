@@ -1,0 +1,97 @@
+"""Seconds per pipeline stage, read from the Dagster instance's run history.
+
+For each stage: the step durations of the runs that materialised its current outputs (per-scan
+stages: the latest materialisation of each scan, summed). The report shows this table.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+import numpy as np
+import pandas as pd
+
+from forestmap_assets.assets.common import PIPELINE
+from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.orchestration.runner import get_instance
+
+TIMING_COLUMNS = [
+    "stage",
+    "granularity",
+    "outputs",
+    "seconds",
+    "slowest_seconds",
+    "last_materialised",
+]
+
+
+def stage_timings(campaign: Campaign, instance=None) -> pd.DataFrame:
+    """Seconds per pipeline stage from the Dagster instance (see the module docstring)."""
+    from dagster import AssetKey
+    from dagster._core.event_api import AssetRecordsFilter
+
+    if instance is None:
+        instance = get_instance()
+    step_cache: dict[str, dict[str, float]] = {}
+
+    def durations(run_id: str) -> dict[str, float]:
+        if run_id not in step_cache:
+            stats = instance.get_run_step_stats(run_id)
+            step_cache[run_id] = {
+                s.step_key: float(s.end_time - s.start_time)
+                for s in stats
+                if s.start_time is not None and s.end_time is not None
+            }
+        return step_cache[run_id]
+
+    rows = []
+    for stage, granularity in PIPELINE:
+        key = AssetKey([campaign.key, stage])
+        records = instance.fetch_materializations(
+            AssetRecordsFilter(asset_key=key), limit=max(200, 8 * len(campaign.scans))
+        ).records
+        latest: dict[str | None, object] = {}
+        for rec in records:  # newest first
+            part = rec.asset_materialization.partition if rec.asset_materialization else None
+            if granularity == "scan" and part not in campaign.scan_ids:
+                continue
+            latest.setdefault(part, rec)
+        if not latest:
+            rows.append(
+                dict(
+                    stage=stage,
+                    granularity=granularity,
+                    outputs=0,
+                    seconds=np.nan,
+                    slowest_seconds=np.nan,
+                    last_materialised="",
+                )
+            )
+            continue
+        secs = []
+        for rec in latest.values():
+            entry = rec.event_log_entry
+            secs.append(durations(entry.run_id).get(entry.step_key or "", np.nan))
+        newest = max(rec.event_log_entry.timestamp for rec in latest.values())
+        rows.append(
+            dict(
+                stage=stage,
+                granularity=granularity,
+                outputs=len(latest),
+                seconds=float(np.nansum(secs)),
+                slowest_seconds=float(np.nanmax(secs)) if np.isfinite(secs).any() else np.nan,
+                last_materialised=datetime.fromtimestamp(newest, UTC).strftime(
+                    "%Y-%m-%d %H:%M:%S UTC"
+                ),
+            )
+        )
+    return pd.DataFrame(rows, columns=TIMING_COLUMNS)
+
+
+def stage_timings_or_note(campaign: Campaign, instance=None) -> pd.DataFrame:
+    """:func:`stage_timings`, or a one-row note when the run history cannot be read (the
+    report must not fail on it)."""
+    try:
+        return stage_timings(campaign, instance)
+    except Exception as exc:
+        return pd.DataFrame({"stage": [f"timings unavailable: {exc}"]})

@@ -1,0 +1,1 @@
+"""Shared helpers of the tests: synthetic scenes, small campaign folders, orchestration set-ups."""
