@@ -395,6 +395,7 @@ def _candidate_of(plan, cfg, g):
 
 
 # ---- Dagster assets ----------------------------------------------------------------------
+@pytest.mark.slow
 def test_assets_occlusion_and_next_vantage_points(tmp_path):
     from dagster import Definitions, materialize
     from upath import UPath

@@ -68,6 +68,7 @@ def test_survey_writer_manifest_is_a_valid_campaign(tmp_path):
     assert len(pd.read_csv(tmp_path / "c" / "truth" / "plot.csv")) == 4
 
 
+@pytest.mark.slow
 def test_explore_two_scans_closes_the_loop(tmp_path):
     out = tmp_path / "survey"
     light = {"cloud_spacing_m": None, "picture": False, "report": False}

@@ -39,6 +39,7 @@ def _arcs(specs, n=40, noise=0.0, seed=0, span_deg=150):
 SPECS = [(2.0, 0.3, 0.1), (5.0, -1.0, 0.2), (14.5, 0.0, 0.192), (20.0, 3.0, 0.05), (-3.0, 4.0, 0.3)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("fit", ["linear", "geometric", "ray"])
 def test_noise_free_arcs_are_recovered_exactly(engine, fit):

@@ -60,6 +60,7 @@ def _totals(results) -> dict:
             "bias_m": float(np.mean(err))}
 
 
+@pytest.mark.slow
 def test_detection_false_positives_and_radius(scored):
     t = _totals([a for *_, a in scored])
     assert t["stems"] >= 60  # enough stems for the rates to mean something

@@ -119,6 +119,7 @@ def test_inclination_gate_on_sloped_ceiling():
     np.testing.assert_allclose(_inclination(long), 8.0, atol=1.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("params", [INDOOR, OUTDOOR], ids=["indoor", "outdoor"])
 def test_open_ground_plane_gives_no_lines(params):
     img = _image([((0, 0, -1), 1.3)], rows=120, cols=900, noise=0.025)

@@ -49,6 +49,7 @@ def _normalised(sol) -> np.ndarray:
     return err / p[["sd_x", "sd_y", "sd_z", "sd_heading_deg"]].to_numpy(float)
 
 
+@pytest.mark.slow
 def test_correlated_observations_get_calibrated_pose_sigmas():
     rng = np.random.default_rng(5)
     rho = 0.35
@@ -102,6 +103,7 @@ def test_link_selection_verdicts_do_not_depend_on_correlation():
     assert (b.solution.poses["sd_x"].iloc[1:] > a.solution.poses["sd_x"].iloc[1:]).all()
 
 
+@pytest.mark.slow
 def test_each_observation_type_keeps_its_own_correlation():
     """Refined links are barely correlated, branch-and-bound links are: per-observation rho
     (``RHO_COLUMNS``) gives calibrated sigmas where any single rho is off."""

@@ -4,6 +4,7 @@ enough cylinder segments; ERROR when a scan has none, WARN when it has few."""
 from __future__ import annotations
 
 import pandas as pd
+import pytest
 from dagster import AssetCheckSeverity
 from helpers.orchestration import materialised_copy
 
@@ -53,6 +54,7 @@ def test_cylinder_check():
     assert few.severity == AssetCheckSeverity.WARN and none.severity == AssetCheckSeverity.ERROR
 
 
+@pytest.mark.slow
 def test_default_thresholds_pass_on_a_simulated_forest(tmp_path, monkeypatch):
     """The (inferred) defaults accept ordinary quarter-resolution forest scans."""
     from forestmap_assets.access import load_asset

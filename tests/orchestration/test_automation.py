@@ -7,6 +7,7 @@ import shutil
 from datetime import UTC, datetime
 
 import numpy as np
+import pytest
 from dagster import (
     RunRequest,
     SensorResult,
@@ -52,6 +53,7 @@ def _apply(instance, result: SensorResult) -> None:
         instance.report_runless_asset_event(event)
 
 
+@pytest.mark.slow
 def test_scan_sensor_requests_exactly_the_runs_needed(tmp_path, monkeypatch):
     data = tmp_path / "data"
     root = write_campaign(data / "plot", scans=("T", "S"))
@@ -103,6 +105,7 @@ def test_scan_sensor_requests_exactly_the_runs_needed(tmp_path, monkeypatch):
     assert [r.tags["forestmap/campaign"] for r in sixth.run_requests if r.job_name == PROCESS_JOB] == [c.key]
 
 
+@pytest.mark.slow
 def test_nightly_schedule_and_process_campaign_job(tmp_path, monkeypatch):
     root = materialised_copy(tmp_path, monkeypatch)
     monkeypatch.setenv("FORESTMAP_DATA_ROOT", str(root.parent))
@@ -127,6 +130,7 @@ def test_nightly_schedule_and_process_campaign_job(tmp_path, monkeypatch):
     assert (root / "outputs" / "poses.csv").is_file()
 
 
+@pytest.mark.slow
 def test_campaign_level_assets_follow_changed_inputs_only(tmp_path, monkeypatch):
     root = materialised_copy(tmp_path, monkeypatch)
     instance = get_instance()

@@ -5,6 +5,7 @@ per-scan assets and the campaign-level ones; ``forestmap status`` says so before
 
 from __future__ import annotations
 
+import pytest
 import yaml
 from helpers.orchestration import (
     campaign,
@@ -41,6 +42,7 @@ def test_template_is_fresh_and_a_rerun_does_nothing(tmp_path, monkeypatch, capsy
     assert _run(root) == set()
 
 
+@pytest.mark.slow
 def test_parameter_change_reruns_that_stage_and_only_what_its_output_changes(tmp_path, monkeypatch, capsys):
     root = materialised_copy(tmp_path, monkeypatch)
     defs0 = build_definitions([campaign(root)])
@@ -67,6 +69,7 @@ def test_parameter_change_reruns_that_stage_and_only_what_its_output_changes(tmp
     assert status_lines(root, capsys) == {s: "fresh" for s in ALL}
 
 
+@pytest.mark.slow
 def test_unchanged_output_does_not_make_downstream_stale(tmp_path, monkeypatch, capsys):
     root = materialised_copy(tmp_path, monkeypatch)
     # wall lines are off in the forest preset: a new minimum length changes the code version of
@@ -81,6 +84,7 @@ def test_unchanged_output_does_not_make_downstream_stale(tmp_path, monkeypatch, 
     assert status_lines(root, capsys) == {s: "fresh" for s in ALL}
 
 
+@pytest.mark.slow
 def test_adding_a_scan_runs_its_own_per_scan_assets_and_the_campaign_level_only(tmp_path, monkeypatch, capsys):
     root = materialised_copy(tmp_path, monkeypatch)
     full = yaml.safe_load((root / "full_manifest.yaml").read_text())

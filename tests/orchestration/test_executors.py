@@ -17,6 +17,7 @@ def _events(instance, run_id, kind):
     return [e for e in instance.all_logs(run_id) if e.dagster_event and e.dagster_event.event_type == kind]
 
 
+@pytest.mark.slow
 def test_multiprocess_runs_scans_side_by_side(tmp_path):
     root = write_campaign(tmp_path / "plot", scans=("T", "S"))
     lines: list[str] = []
@@ -36,6 +37,7 @@ def test_multiprocess_runs_scans_side_by_side(tmp_path):
     assert a.start_time < b.end_time and b.start_time < a.end_time  # the two scans overlapped
 
 
+@pytest.mark.slow
 def test_dask_cluster_with_store_on_an_fsspec_url(tmp_path, monkeypatch):
     distributed = pytest.importorskip("dask.distributed")
     pytest.importorskip("dagster_dask")

@@ -20,6 +20,7 @@ def _run(tmp_path, **sim):
     return root, evaluate_campaign(root)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("prior", ["rough", "none"])
 def test_pipeline_places_every_scan_and_finds_trees(tmp_path, prior):
     kw = dict(scans=4, seed=5, prior_error=(4.5, 32.0)) if prior == "rough" else dict(scans=3, seed=6, no_prior=True)
@@ -38,6 +39,7 @@ def test_pipeline_places_every_scan_and_finds_trees(tmp_path, prior):
     assert (residuals["verdict"] == "ok").all()
 
 
+@pytest.mark.slow
 def test_assets_carry_pictures_for_the_dagster_ui(tmp_path):
     """Every stage whose result is a picture-able thing attaches a PNG (inline Markdown image)
     to its materialisation: range image, segment / circle masks, cylinders over the range image

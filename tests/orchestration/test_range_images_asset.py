@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from helpers.campaign_files import write_campaign
 
 from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
@@ -16,6 +17,7 @@ def _stored(home, campaign, scan):
     return RangeImage.from_table(read_table(home / "store" / campaign.key / "range_images" / f"{scan}.parquet"))
 
 
+@pytest.mark.slow
 def test_range_images_materialise_level_and_cache(tmp_path, _isolated_home):
     root = write_campaign(tmp_path / "plot", scans=("T", "S", "R"), with_rgb=True)
     manifest = root / "campaign.yaml"
@@ -50,6 +52,7 @@ def test_range_images_materialise_level_and_cache(tmp_path, _isolated_home):
     assert {scan for _, scan in rerun if scan is not None} == {"T"}  # no other scan's work
 
 
+@pytest.mark.slow
 def test_corrupt_scan_fails_only_its_partition(tmp_path, _isolated_home):
     root = write_campaign(tmp_path / "plot", scans=("T", "S"))
     (root / "scans" / "S.npz").write_bytes(b"this is not a numpy archive")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import pytest
 from dagster import materialize
 
 from forestmap_assets.assets.common import asset_key, code_version
@@ -35,6 +36,7 @@ def _registrations(truth: pd.DataFrame, offset) -> dict[str, pd.DataFrame]:
             "hypotheses": pd.DataFrame({"scan": ["S"]})}
 
 
+@pytest.mark.slow
 def test_refined_registrations_asset_uses_hicp_on_colour_scans(tmp_path, _isolated_home):
     root = simulate_campaign(tmp_path / "plot", scans=2, trees=20, plot_size=24.0, resolution="half", seed=2,
                              fmt="e57", scanner_kwargs={"colour": True}, write_labels=False)

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
+import pytest
 from helpers.campaign_files import write_campaign
 from helpers.orchestration import materialised_since
 
@@ -32,6 +33,7 @@ def _files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file())
 
 
+@pytest.mark.slow
 def test_two_runs_of_one_campaign_at_once(tmp_path):
     root = write_campaign(tmp_path / "plot", scans=("T", "S"))
     campaign = load_campaign(root)
@@ -62,6 +64,7 @@ def test_two_runs_of_one_campaign_at_once(tmp_path):
         assert pq.read_table(f).num_rows > 0
 
 
+@pytest.mark.slow
 def test_failed_run_leaves_no_partial_parquet(tmp_path, monkeypatch):
     root = write_campaign(tmp_path / "plot", scans=("T", "S"))
     real = store.pq.write_table

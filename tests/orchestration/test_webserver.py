@@ -3,6 +3,7 @@ every asset and asset check of the definitions through its GraphQL API (issue 6)
 
 from __future__ import annotations
 
+import pytest
 from helpers.campaign_files import write_campaign
 
 from forestmap_assets.orchestration.automation import automated_definitions
@@ -18,6 +19,7 @@ from forestmap_assets.orchestration.workspace import (
 )
 
 
+@pytest.mark.slow
 def test_webserver_serves_every_asset_and_check(tmp_path, monkeypatch):
     data = tmp_path / "data"
     write_campaign(data / "plot", scans=("T", "S"))

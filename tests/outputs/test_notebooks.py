@@ -86,6 +86,7 @@ def text(book) -> str:
 @pytest.mark.parametrize(
     "name, n_images", [("01_scan_features", 3), ("02_registration", 2), ("03_global_map", 6)]
 )
+@pytest.mark.slow
 def test_reading_notebooks_run_and_draw(materialised, monkeypatch, name, n_images):
     folder, env = materialised
     book = execute(name, folder, env, monkeypatch)
@@ -95,6 +96,7 @@ def test_reading_notebooks_run_and_draw(materialised, monkeypatch, name, n_image
     assert f"campaign 'plot' in {folder}" in text(book)
 
 
+@pytest.mark.slow
 def test_parameters_notebook_reruns_only_downstream(materialised, monkeypatch):
     """The change here is the residual test's limit (mapping.residual_sigmas): only the stages
     reading the mapping section get a new code version, and since their outputs keep their

@@ -87,6 +87,7 @@ def test_surface_has_two_triangles_per_complete_cell():
     assert not np.isin(0, tris)  # the vertex without value is used by no triangle
 
 
+@pytest.mark.slow
 def test_remove_spikes_drops_branch_hits_and_keeps_the_slope():
     grid = sloped_grid()
     clean = F.remove_spikes(grid, spike_m=1.0)

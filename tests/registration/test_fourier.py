@@ -187,6 +187,7 @@ def room_pair():
     return _room_scans(np.random.default_rng(3), scanner)
 
 
+@pytest.mark.slow
 def test_v10_coarse_pipeline_on_simulated_room_scans(room_pair):
     a, b, r_true, t_true = room_pair
     xa, xb = a.image.xyz[a.image.valid], b.image.xyz[b.image.valid]

@@ -49,6 +49,7 @@ def outcome(tmp_path_factory):
     return regs, om["poses"], truth
 
 
+@pytest.mark.slow
 def test_no_wrong_link_and_every_scan_with_a_correct_path_placed(outcome):
     regs, poses, truth = outcome
     good = regs[(regs["status"] == "accepted") & regs["correct"]]

@@ -4,6 +4,7 @@ coarse registration of the raw points (men spec 4) and searched in the forest bo
 from __future__ import annotations
 
 import pandas as pd
+import pytest
 from helpers.orchestration import edit_manifest
 
 from forestmap_assets.access import load_asset
@@ -14,6 +15,7 @@ from forestmap_assets.sim import simulate_campaign
 from forestmap_assets.sim.evaluate import evaluate_campaign
 
 
+@pytest.mark.slow
 def test_fourier_centres_the_no_prior_boxes(tmp_path):
     root = simulate_campaign(tmp_path / "plot", scans=2, trees=24, plot_size=24.0, resolution="quarter",
                              no_prior=True, seed=6)

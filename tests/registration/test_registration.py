@@ -69,6 +69,7 @@ def _small_problem(rng, kind):
     return scan, ref
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["plain", "outliers", "symmetric"])
 def test_branch_and_bound_equals_exhaustive(kind):
     """Spec 13.4: the search returns the final-lattice maximum, for both evaluators."""
@@ -167,6 +168,7 @@ def test_lattice_levels_halve_to_final_cell():
     assert len(lat.schedule()) == int(np.log2(lat.n).sum())
 
 
+@pytest.mark.slow
 def test_first_hypotheses_change_speed_not_result():
     """Voting and seeds only raise the initial best score: same lattice maximum without them."""
     pa, pb, truth = _stem_points(2, n_trees=25, half_extent_m=8.0, max_range_m=9.0)

@@ -123,6 +123,7 @@ def test_constraint_support_of_parallel_lines_pillars_and_corners():
 
 
 # ---- range-limited wall lines pull the scans together (issue 10) -------------------------------
+@pytest.mark.slow
 def test_range_limited_wall_line_slides_the_scans_together_unless_pillars_weigh_double():
     """Both scans detect the same straight wall only within 7.5 m, so sliding scan B 5 m towards
     A along the wall adds 5 m of line overlap, which outweighs the two shared pillars at the
@@ -148,6 +149,7 @@ def test_range_limited_wall_line_slides_the_scans_together_unless_pillars_weigh_
 
 
 # ---- pair 87: only parallel walls in common ----------------------------------------------------
+@pytest.mark.slow
 def test_pair_87_opposite_walls_matched_then_guarded():
     """Scan 7 has only the left wall (y = +1.2) in common range, scan 8 only the right wall
     (y = -1.2): with the thesis's box the left wall is matched to the right one (Table 5.2/5.3,
@@ -183,6 +185,7 @@ def corridor_43():
     return a, b, np.array([10.0, 0.0, 0.0, 0.0])
 
 
+@pytest.mark.slow
 def test_pair_43_prior_3m_off_gives_the_7m_shift_and_is_flagged(corridor_43):
     a, b, truth = corridor_43
     prior = truth + [-3.0, 0.0, 0.0, 0.0]  # the box now reaches the next pillar
@@ -195,6 +198,7 @@ def test_pair_43_prior_3m_off_gives_the_7m_shift_and_is_flagged(corridor_43):
     assert fig["rival_separation_m"] == pytest.approx(7.0, abs=0.3)
 
 
+@pytest.mark.slow
 def test_pair_43_correct_alignment_passes_and_restricted_box_avoids_the_shift(corridor_43):
     a, b, truth = corridor_43
     prior = truth + [3.0, 0.0, 0.0, 0.0]  # the box reaches the next pillar on the far side
@@ -242,6 +246,7 @@ def test_search_box_syntax():
             search_box(d, bad)
 
 
+@pytest.mark.slow
 def test_register_in_a_turned_box_matches_a_corridor_at_any_heading():
     """A corridor running at 30 deg in the reference frame (scan A heads -30 deg in the world,
     the corridor runs along world x): a box +-0.5 m across it and +-3 m along it (axes turned by
@@ -332,6 +337,7 @@ def test_coarse_to_fine_history_keeps_a_late_leader_as_a_secondary_hypothesis():
 
 
 
+@pytest.mark.slow
 def test_pipeline_registrations_carry_the_coarse_to_fine_hypothesis():
     """The one-wall pair 87 through register_candidates with the indoor preset: the sliding
     alignment led late in the search, so the hypotheses table holds it and the pair is not
