@@ -1,4 +1,6 @@
-"""Thin Dagster wrappers around the core, one module per stage group.
+"""Thin Dagster wrappers around the core, one module per stage group (ingest, features,
+registration, map, exploration). May import: ``core``, ``io``, ``outputs``, ``access``,
+``params``; never ``orchestration``.
 
 :func:`campaign_assets` is an asset factory: every campaign gets its own assets under the key
 prefix ``<campaign>/`` with per-scan partitions, so each campaign's parameter overrides enter

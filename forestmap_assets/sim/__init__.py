@@ -1,4 +1,8 @@
-"""Virtual forest plot and Riegl LMS-Z210-like scanner for synthetic campaigns (spec 1, 10)."""
+"""Virtual forest plot, structured sites and a Riegl LMS-Z210-like scanner for synthetic
+campaigns with ground truth (spec 1, 10), and scoring against that truth.
+
+May import: ``core``, ``io``, ``params``; never ``assets``, ``outputs`` or ``orchestration``.
+"""
 
 from forestmap_assets.sim.campaign import relative_pose, scan_ids, simulate_campaign
 from forestmap_assets.sim.forest import Forest, SceneMesh, make_forest

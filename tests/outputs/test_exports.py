@@ -22,6 +22,7 @@ from forestmap_assets.core.geometry import transform_points
 from forestmap_assets.core.mapping.point_cloud import registered_cloud, voxel_keep
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.io.store import default_store_url, write_bundle_atomic, write_table_atomic
+from forestmap_assets.orchestration.timings import stage_timings
 from forestmap_assets.outputs.exports import (
     EXPORTS,
     campaign_cloud,
@@ -267,7 +268,8 @@ def test_write_exports_writes_every_file(filled, tmp_path):
     out = tmp_path / "outputs"
     lines = []
     written = write_exports(
-        filled, out, cloud_spacing_m=0.2, progress=Progress(bars=False, out=_Lines(lines))
+        filled, out, cloud_spacing_m=0.2, progress=Progress(bars=False, out=_Lines(lines)),
+        timings=stage_timings(filled),
     )
     assert sorted(p.name for p in written) == sorted(EXPORTS)
     assert lines[-1] == "  exports 11/11: report.html"  # one step per file, the two clouds together
