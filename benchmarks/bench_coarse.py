@@ -4,15 +4,15 @@ The pairs are those of ``bench_registration.py``'s "no prior" case (same simulat
 full-resolution plots, same seeded choice among pairs sharing at least 5 stems) plus further
 pairs of the same plots. For each pair, in one run:
 
-* (a) **Fourier, thesis** (``core.fourier.coarse_register``, heading mode for levelled scans,
+* (a) **Fourier, thesis** (``core.registration.fourier_coarse.coarse_register``, heading mode for levelled scans,
   ``rotation='egi'``): PCA normals -> EGI -> heading by spherical-harmonic correlation (L = 32),
   its peaks verified by the translation correlation of occupancy grids (0.2 m, zero padded);
 * (a') **Fourier, occupancy scan** (``rotation='occupancy_scan'``, inferred forest adaptation):
   the occupancy correlation itself over 64 headings, the best refined on a 4x finer grid;
 * (a'') **Fourier + branch and bound**: (a') as the centre of the forest search box
   (+-5 m, +-1.25 m, +-60 deg) of the branch and bound on the feature sub-maps: the pipeline's
-  ``no_prior_method='fourier'`` option (``core.fourier.coarse_candidates``);
-* (b) **branch and bound, no prior**: ``core.registration.register_pair`` over the full heading
+  ``no_prior_method='fourier'`` option (``core.registration.fourier_coarse.coarse_candidates``);
+* (b) **branch and bound, no prior**: ``core.registration.register.register_pair`` over the full heading
   circle and xy half-width min(reach_a, reach_b, 20 m) (the candidate-pair rule);
 * (c) **Open3D FPFH + RANSAC + point-to-plane ICP** on the raw scans (``bench_registration``'s
   peer).
@@ -52,9 +52,9 @@ from bench_registration import (  # noqa: E402
 from forest_pairs import campaign_submaps  # noqa: E402
 from results_md import write_section  # noqa: E402
 
-from forestmap_assets.core.fourier import coarse_register, prepare_cloud  # noqa: E402
-from forestmap_assets.core.registration import register_pair  # noqa: E402
-from forestmap_assets.core.registration_.pair_registrations import judge  # noqa: E402
+from forestmap_assets.core.registration.fourier_coarse import coarse_register, prepare_cloud
+from forestmap_assets.core.registration.pair_registrations import judge  # noqa: E402
+from forestmap_assets.core.registration.register import register_pair
 from forestmap_assets.params import RegistrationParams  # noqa: E402
 
 START, END = "<!-- coarse:start -->", "<!-- coarse:end -->"

@@ -106,14 +106,14 @@ def main() -> None:
     os.environ["FORESTMAP_HOME"] = str(work / "home")  # an isolated store and instance
     os.environ["DAGSTER_HOME"] = str(Path(os.environ["FORESTMAP_HOME"]) / "dagster")
 
-    from forestmap_assets.core.exploration import ExplorationConfig
-    from forestmap_assets.explore import (
-        explore,
+    from forestmap_assets.explore.baseline_survey import (
         grid_positions,
-        make_plot,
         random_positions,
         survey_positions,
     )
+    from forestmap_assets.explore.planned_survey import explore
+    from forestmap_assets.explore.virtual_plot import make_plot
+    from forestmap_assets.params.men import ExplorationConfig
 
     seeds = [int(s) for s in args.plots.split(",") if s.strip()]
     light = {"cloud_spacing_m": None, "picture": False, "report": False}

@@ -32,8 +32,8 @@ sys.path.insert(0, str(ROOT / "tests"))  # the analytic scene generator lives wi
 import synthetic as S  # noqa: E402
 from results_md import write_section  # noqa: E402
 
-from forestmap_assets.core import circles as C  # noqa: E402
-from forestmap_assets.core.circles import final_circles, fit_circle_models  # noqa: E402
+from forestmap_assets.core.features._circle_kernels import HAVE_NUMBA
+from forestmap_assets.core.features.circle_models import final_circles, fit_circle_models
 from forestmap_assets.core.features.cylinders import assemble_cylinders, extract_features  # noqa: E402
 from forestmap_assets.core.features.segments import segment_scan_lines  # noqa: E402
 from forestmap_assets.params import Params  # noqa: E402
@@ -173,7 +173,7 @@ VARIANTS = {  # name: (symmetry statistic, axis/normal check limit (None: curvat
 
 def _stem_px_per_row(kind, tree, tree_id):
     """Median stem-labelled pixels per image row of a tree (how wide it is seen)."""
-    from forestmap_assets.sim.forest import KIND_STEM
+    from forestmap_assets.sim.scene_mesh import KIND_STEM
 
     m = (kind == KIND_STEM) & (tree == tree_id)
     per_row = m.sum(1)
@@ -277,7 +277,7 @@ def main(argv=None) -> int:
     extract_features(img)  # warm-up (numba compile / cache load, page faults)
 
     timing_rows = []
-    engines = ["numba", "numpy"] if C.HAVE_NUMBA else ["numpy"]
+    engines = ["numba", "numpy"] if HAVE_NUMBA else ["numpy"]
     for engine in engines:
         for fit in FITS:
             if engine == "numpy" and fit != "linear":

@@ -12,7 +12,7 @@ colour camera, ``sim/colour.py``; E57 files, which keep RGB) in ``--cache``:
    started 0.2 m / 1.5 deg off: iterations, seconds, eps (mean pair distance), eps_n and the
    error against the truth per weight.
 3. **Pipeline**: ``forestmap run`` (branch and bound on the feature sub-maps), then every accepted
-   pair refined on the raw points (``core.refine``) by HICP + robust point-to-plane (the pipeline's
+   pair refined on the raw points (``core.registration.refine``) by HICP + robust point-to-plane (the pipeline's
    default for colour scans), HICP alone, plain ICP (w = 0), Open3D point-to-plane with a Tukey
    kernel + robust 4-DoF steps (the default without colour) and the same in least squares; pair
    errors and the optimal map's pose errors against the truth before and after, and the errors
@@ -71,7 +71,7 @@ def ensure_campaign(cache: Path, scans: int, trees: int, plot: float, seed: int,
 
 
 def run_pipeline(folder: Path, progress=print) -> None:
-    from forestmap_assets.runner import run_campaign
+    from forestmap_assets.orchestration.runner import run_campaign
 
     t0 = time.perf_counter()
     summary = run_campaign(folder, progress=progress)
@@ -82,7 +82,7 @@ def run_pipeline(folder: Path, progress=print) -> None:
 
 def clouds_of(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
     from forestmap_assets.access import load_asset
-    from forestmap_assets.core.registration_.colour import rgb_to_hue
+    from forestmap_assets.core.registration.colour import rgb_to_hue
 
     out = {}
     for sid in pd.read_csv(folder / "truth" / "poses.csv")["scan"]:
@@ -104,7 +104,8 @@ def truth_rel(truth: pd.DataFrame, scan: str, ref: str) -> np.ndarray:
 
 def d6_analogue(points, hue, radius=0.05, voxel=0.15, progress=print) -> pd.DataFrame:
     from forestmap_assets.core.cloud import voxel_subsample
-    from forestmap_assets.core.hicp import hicp, merged_normal_quality
+    from forestmap_assets.core.registration.hicp import hicp
+    from forestmap_assets.core.registration.icp_uncertainty import merged_normal_quality
 
     keep = np.linalg.norm(points[:, :2], axis=1) < 20.0
     p, h = points[keep], hue[keep]
@@ -153,7 +154,8 @@ def d6_analogue(points, hue, radius=0.05, voxel=0.15, progress=print) -> pd.Data
 def d8_analogue(clouds, truth, scan, ref, progress=print) -> pd.DataFrame:
     from forestmap_assets.core.cloud import voxel_subsample
     from forestmap_assets.core.geometry import wrap_deg
-    from forestmap_assets.core.hicp import Embedding, ModelIndex, hicp, merged_normal_quality
+    from forestmap_assets.core.registration.hicp import Embedding, ModelIndex, hicp
+    from forestmap_assets.core.registration.icp_uncertainty import merged_normal_quality
 
     (ps, hs), (pr, hr) = clouds[scan], clouds[ref]
 
@@ -196,8 +198,8 @@ def pipeline_refinement(folder: Path, clouds, truth, progress=print):
     from forestmap_assets.access import load_asset
     from forestmap_assets.core.geometry import wrap_deg
     from forestmap_assets.core.mapping.link_selection import select_links
-    from forestmap_assets.core.registration_.refine import refine_registrations
-    from forestmap_assets.params_men import RefineSettings
+    from forestmap_assets.core.registration.refine import refine_registrations
+    from forestmap_assets.params.men import RefineSettings
 
     regs = load_asset("pairwise_registrations", campaign=folder)["registrations"]
     accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)

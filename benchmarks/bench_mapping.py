@@ -64,7 +64,7 @@ def temperature_sweep(root: Path, truth: pd.DataFrame, temperatures=SWEEP) -> pd
     poses (``level = pose``) per T, plus wrong / correct-but-rejected link counts."""
     from forestmap_assets.access import load_asset
     from forestmap_assets.core.mapping.link_selection import select_links
-    from forestmap_assets.core.registration_.pair_registrations import tempered_cloud_sigma
+    from forestmap_assets.core.registration.pair_registrations import tempered_cloud_sigma
     from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.sim.evaluate import pose_errors
 
@@ -152,8 +152,8 @@ def run_one(seed: int, args, work: Path) -> dict:
     from forestmap_assets.core.mapping.link_selection import select_links
     from forestmap_assets.core.mapping.trees import merge_trees
     from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.orchestration.runner import run_campaign
     from forestmap_assets.outputs.exports import write_exports
-    from forestmap_assets.runner import run_campaign
     from forestmap_assets.sim import simulate_campaign
     from forestmap_assets.sim.evaluate import dbh_errors, evaluate_campaign, pose_errors
 

@@ -22,7 +22,7 @@ its whole volume); both find the same lattice maximum. Both go through the same 
 function with ``RegistrationParams.bound`` set.
 
 Reported per registration: exactly what the pipeline writes to ``registrations.csv`` for the
-pair (``core.pair_registrations.register_candidates``, the function the
+pair (``core.registration.pair_registrations.register_candidates``, the function the
 ``pairwise_registrations`` asset calls, with the two scans' ground elevation grids computed as
 the ``elevation_maps`` asset does: cell-cloud centre, dz from the ground when it agrees, status
 from the judge and structure checks), the peak and feature-based dz, wall-clock and CPU seconds
@@ -65,9 +65,9 @@ from forest_pairs import (  # noqa: E402
 )
 from results_md import write_section  # noqa: E402
 
-from forestmap_assets.core import registration  # noqa: E402
-from forestmap_assets.core.registration import register_pair  # noqa: E402
-from forestmap_assets.core.registration_.pair_registrations import register_candidates  # noqa: E402
+from forestmap_assets.core.registration import fast_search  # noqa: E402
+from forestmap_assets.core.registration.pair_registrations import register_candidates  # noqa: E402
+from forestmap_assets.core.registration.register import register_pair
 from forestmap_assets.params import ElevationParams, RegistrationParams  # noqa: E402
 
 # (name, seed, plot size m, trees, scans): a dense and an open plot, and a long plot for pairs
@@ -170,7 +170,7 @@ def low_overlap_jobs(table, submaps, elevation, n_low, rng):
 def pipeline_registration(scan_submap, ref_submap, scan_grid, ref_grid, centre, half, params,
                           elevation_cell_m):
     """The ``registrations.csv`` row and the search result the pipeline writes for one pair:
-    :func:`~forestmap_assets.core.pair_registrations.register_candidates` (the function the
+    :func:`~forestmap_assets.core.registration.pair_registrations.register_candidates` (the function the
     ``pairwise_registrations`` asset calls: search, judge, structure checks, dz from the ground
     elevation grids) on a one-pair candidate table. Returns (row, levels)."""
     cand = pd.DataFrame([dict(scan="B", reference="A", cx=centre[0], cy=centre[1], cz=centre[2],
@@ -185,7 +185,7 @@ def pipeline_registration(scan_submap, ref_submap, scan_grid, ref_grid, centre, 
 def _score_pair(case, camp, name, pb, pa, gb, ga, truth, shared, centre, half, params, cell_m):
     """One pipeline registration of a benchmark pair, timed and scored against the truth (the
     per-process cache of reference fields is emptied first: the time includes building it)."""
-    registration._FIELDS.clear()
+    fast_search._FIELDS.clear()
     t0, c0 = time.perf_counter(), time.process_time()
     reg, hyp = pipeline_registration(pb, pa, gb, ga, centre, half, params, cell_m)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -272,7 +272,7 @@ def table(df: pd.DataFrame, peer: pd.DataFrame) -> str:
         f"{', '.join(f'{c[0]}: {c[2]:g} m, {c[3]} trees, {c[4]} scans' for c in CAMPAIGNS)}. "
         "Success: within 5 cm xy, 10 cm z and 0.5 deg heading of the truth. Ours is scored on "
         "exactly what the pipeline writes to registrations.csv for the pair "
-        "(`core.pair_registrations.register_candidates`, the function of the "
+        "(`core.registration.pair_registrations.register_candidates`, the function of the "
         "`pairwise_registrations` asset: branch-and-bound search, cell-cloud centre, judge and "
         "structure checks, dz from the scans' ground elevation grids when they agree); 'accepted' "
         "is its status. Wall/CPU: that whole call per pair; 'search' is the register_pair part. "

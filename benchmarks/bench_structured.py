@@ -30,23 +30,26 @@ from forestmap_assets.core.features.cylinders import extract_features
 from forestmap_assets.core.mapping.chained_map import chained_map
 from forestmap_assets.core.mapping.chaining import OBSERVATION_COLUMNS
 from forestmap_assets.core.mapping.link_selection import check_link_hypothesis, select_links
-from forestmap_assets.core.registration_.candidates import candidate_pairs
-from forestmap_assets.core.registration_.pair_checks import (
+from forestmap_assets.core.registration.candidates import candidate_pairs
+from forestmap_assets.core.registration.pair_checks import (
     assess_history,
     assess_pair,
-    judge_in_box,
     register_in_box,
     search_box,
 )
-from forestmap_assets.core.registration_.pair_registrations import (
+from forestmap_assets.core.registration.pair_registrations import (
+    judge_in_box,
     observation_sigmas,
     register_candidates,
 )
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.params import resolve_params
 from forestmap_assets.sim.campaign import simulate_campaign
-from forestmap_assets.sim.forest import ground_mesh
+from forestmap_assets.sim.corridor import corridor_scene, make_corridor
+from forestmap_assets.sim.ground import ground_mesh
 from forestmap_assets.sim.scanner import ScanPose, VirtualScanner
+from forestmap_assets.sim.scene_mesh import KIND_GROUND
+from forestmap_assets.sim.site_assembly import SiteBuilder
 from forestmap_assets.sim.site_eval import (
     campaign_features,
     extract_scan_features,
@@ -58,23 +61,18 @@ from forestmap_assets.sim.site_eval import (
     scan_site,
     truth_relative,
 )
-from forestmap_assets.sim.sites import (
+from forestmap_assets.sim.site_meshes import (
     KIND_CEILING,
-    KIND_GROUND,
     KIND_PILLAR,
     KIND_WALL,
     PILLAR_RADIUS_M,
     Wall,
-    _Builder,
-    corridor_scene,
     flat_ground,
-    lines_in_frame,
-    make_corridor,
     pillar_mesh,
     plane_mesh,
-    points_in_frame,
     walls_mesh,
 )
+from forestmap_assets.sim.site_truth import lines_in_frame, points_in_frame
 
 HERE = Path(__file__).parent
 PLOT = HERE / "structured_pillar.png"
@@ -144,7 +142,7 @@ def open3d_icp(src: np.ndarray, dst: np.ndarray, init, voxel: float = 0.1) -> np
 def pillar_scene(d: float):
     """One 0.192 m pillar, floor to a 2.3 m ceiling, ``d`` m in front of the scanner, a wall
     6 m behind it."""
-    b = _Builder()
+    b = SiteBuilder()
     gv, gf = ground_mesh(flat_ground(), 40.0, 2.0)
     b.pieces.append((gv, gf, np.full(len(gf), KIND_GROUND), np.full(len(gf), -1),
                      np.zeros(len(gf))))
@@ -263,7 +261,7 @@ def cylinder_weight(folder: Path) -> int:
 
 def with_weight(folder: Path, feats, weight: int) -> dict:
     """The cached features with their sub-maps rebuilt at ``weight`` (cheap)."""
-    from forestmap_assets.core.registration_.submaps import build_submap
+    from forestmap_assets.core.registration.submaps import build_submap
 
     spacing = load_campaign(folder).params.submaps.spacing_m
     return {s: {**f, "submaps": build_submap(f["cylinder_segments"], f["line_segments"], spacing,
@@ -277,7 +275,7 @@ def slide_diagnosis(folder: Path, feats, table: pd.DataFrame) -> tuple[pd.DataFr
     from scipy.spatial import cKDTree
 
     from forestmap_assets.core.geometry import transform_points
-    from forestmap_assets.core.registration_.score import ScoreModel
+    from forestmap_assets.core.registration.score import ScoreModel
 
     model = ScoreModel.from_params(load_campaign(folder).params.registration)
     truth = pd.read_csv(folder / "truth" / "poses.csv", dtype={"scan": str})
@@ -462,7 +460,7 @@ def refined(folder: Path, table: pd.DataFrame, fresh: bool, tag: str) -> pd.Data
     and the structure checks accept; returns ``table`` with those links' refined pose and sigmas
     where the refinement is used (``refined``) and their new error against the truth."""
     from forestmap_assets.assets.registration import refine_settings
-    from forestmap_assets.core.registration_.refine import refine_registrations
+    from forestmap_assets.core.registration.refine import refine_registrations
     from forestmap_assets.io.readers import read_scan
 
     camp = load_campaign(folder)
@@ -655,7 +653,7 @@ def failures(fresh: bool) -> tuple[pd.DataFrame, list[str]]:
         rows.append(failure_row(f"87 (simulated): parallel walls only, {label}", truth, res, st,
                                 why0, why, fig, float(np.hypot(*(peer[:2] - truth[:2])))))
     # the opposite-wall match proper: each sub-map holds one wall of the corridor
-    from forestmap_assets.core.registration_.submaps import build_submap
+    from forestmap_assets.core.registration.submaps import build_submap
 
     def one_line(y, x0, x1):
         t = pd.DataFrame({"line_id": [0], "x0": [x0], "y0": [y], "z0": [1.0], "x1": [x1],

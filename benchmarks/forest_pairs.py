@@ -31,10 +31,10 @@ def campaign_submap_tables(folder: Path, progress=print) -> dict[str, pd.DataFra
         table = pd.read_parquet(cache)
         return {str(s): g.drop(columns="scan").reset_index(drop=True)
                 for s, g in table.groupby("scan", sort=True)}
-    from forestmap_assets.core.circles import fit_circle_models
+    from forestmap_assets.core.features.circle_models import fit_circle_models
     from forestmap_assets.core.features.cylinders import assemble_cylinders
     from forestmap_assets.core.features.segments import segment_scan_lines
-    from forestmap_assets.core.registration_.submaps import build_submap
+    from forestmap_assets.core.registration.submaps import build_submap
     from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.io.readers import read_scan
 
@@ -59,7 +59,7 @@ def campaign_submap_tables(folder: Path, progress=print) -> dict[str, pd.DataFra
 
 def campaign_submaps(folder: Path, progress=print) -> dict[str, np.ndarray]:
     """Sub-map points (n, 3) per scan id (:func:`campaign_submap_tables`)."""
-    from forestmap_assets.core.registration_.submaps import submap_points
+    from forestmap_assets.core.registration.submaps import submap_points
 
     return {s: submap_points(t) for s, t in campaign_submap_tables(folder, progress).items()}
 
@@ -144,7 +144,7 @@ def sector_crop(folder: Path, scan: str, reference: str, points, width_deg: floa
 
 def campaign_elevation(folder: Path, progress=print) -> dict[str, pd.DataFrame]:
     """Lowest-hit elevation grid (``ix, iy, z, n``) per scan id, as the ``elevation_maps`` asset
-    computes it (:func:`~forestmap_assets.core.elevation.elevation_grid` of the levelled range
+    computes it (:func:`~forestmap_assets.core.features.elevation.elevation_grid` of the levelled range
     image with the campaign's elevation parameters), cached next to the campaign."""
     folder = Path(folder)
     cache = folder / "bench_elevation.npz"

@@ -31,8 +31,8 @@ from forest_pairs import (  # noqa: E402
     campaign_submap_tables,
 )
 
-from forestmap_assets.core import registration  # noqa: E402
-from forestmap_assets.core.registration import register_pair  # noqa: E402
+from forestmap_assets.core.registration import fast_search  # noqa: E402
+from forestmap_assets.core.registration.register import register_pair
 from forestmap_assets.params import RegistrationParams  # noqa: E402
 
 
@@ -83,7 +83,7 @@ def main():
     kw = json.loads(a.kw)
     rows = []
     for case, camp, name, pb, pa, centre, half, truth in jobs:
-        registration._FIELDS.clear()
+        fast_search._FIELDS.clear()
         t0, c0 = time.perf_counter(), time.process_time()
         r = register_pair(pb, pa, centre, half, RegistrationParams(), bound=a.bound,
                           lattice_margin=a.margin, **kw)

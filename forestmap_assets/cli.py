@@ -128,8 +128,8 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_run(args) -> int:
+    from forestmap_assets.orchestration.runner import run_campaign
     from forestmap_assets.outputs.progress import Progress, use
-    from forestmap_assets.runner import run_campaign
 
     if args.cloud_spacing < 0:
         raise UsageError(f"--cloud-spacing: expected a size >= 0 m, got {args.cloud_spacing:g}")
@@ -176,8 +176,9 @@ def cmd_solve(args) -> int:
 
 def cmd_status(args) -> int:
     from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.orchestration.instance import get_instance, sync_partitions
+    from forestmap_assets.orchestration.status import stage_states
     from forestmap_assets.orchestration.workspace import build_definitions
-    from forestmap_assets.runner import get_instance, stage_states, sync_partitions
 
     campaign = load_campaign(args.campaign)
     defs = build_definitions([campaign])
@@ -193,9 +194,9 @@ def cmd_status(args) -> int:
 def cmd_ui(args) -> int:
     import subprocess
 
+    from forestmap_assets.orchestration.instance import get_instance
     from forestmap_assets.orchestration.webserver import webserver_command
     from forestmap_assets.orchestration.workspace import data_root
-    from forestmap_assets.runner import get_instance
 
     get_instance()  # sets DAGSTER_HOME to the persistent instance
     _say(args, f"Dagster UI on http://{args.host}:{args.port} for the campaigns under {data_root()} "
@@ -204,7 +205,7 @@ def cmd_ui(args) -> int:
 
 
 def cmd_explore(args) -> int:
-    from forestmap_assets.explore import explore
+    from forestmap_assets.explore.planned_survey import explore
 
     if args.budget < 1:
         raise UsageError("explore: --budget must be at least 1")

@@ -5,7 +5,8 @@ from __future__ import annotations
 import base64
 import hashlib
 import io
-from dataclasses import dataclass
+import json
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import pandas as pd
@@ -22,6 +23,7 @@ from dagster import (
 )
 
 from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.params.men import ExplorationConfig, OcclusionConfig
 
 # Bump a stage's number when its code changes meaning; the parameter hash is appended.
 CODE_VERSIONS: dict[str, str] = {
@@ -113,12 +115,37 @@ def manifest_digest(campaign: Campaign, entries: tuple[str, ...]) -> str:
     return hashlib.sha256(repr(sorted(parts.items())).encode()).hexdigest()[:16]
 
 
+# The stages from Men (2012) version their settings (dataclasses of params.men), not sections
+MEN_CODE_VERSIONS = {"occlusion_boundaries": "1", "next_vantage_points": "1"}
+
+
+def occlusion_config(campaign: Campaign) -> OcclusionConfig:
+    return OcclusionConfig.from_params(getattr(campaign.params, "occlusion", None))
+
+
+def exploration_config(campaign: Campaign) -> ExplorationConfig:
+    return ExplorationConfig.from_params(getattr(campaign.params, "exploration", None))
+
+
+def _version(stage: str, *configs) -> str:
+    text = json.dumps([asdict(c) for c in configs], sort_keys=True, default=str)
+    return f"v{MEN_CODE_VERSIONS[stage]}-{hashlib.sha256(text.encode()).hexdigest()[:16]}"
+
+
+def stage_version(campaign: Campaign, stage: str) -> str:
+    """Code version of ``occlusion_boundaries`` / ``next_vantage_points`` (stage version plus the
+    hash of its settings), as :func:`code_version` gives for the other stages."""
+    if stage == "occlusion_boundaries":
+        config = occlusion_config(campaign)
+    else:
+        config = exploration_config(campaign)
+    return _version(stage, config)
+
+
 def code_version(campaign: Campaign, stage: str) -> str:
     """Stage code version plus the hash of its resolved parameter sections and of the
     manifest entries it reads (``STAGE_MANIFEST``)."""
     if stage not in CODE_VERSIONS:  # the exploration stages (Men 2012) version their settings
-        from forestmap_assets.assets.exploration import stage_version
-
         return stage_version(campaign, stage)
     digests = [campaign.params.digest(s) for s in STAGE_PARAMS[stage]]
     if STAGE_MANIFEST.get(stage):

@@ -19,8 +19,12 @@ from forestmap_assets.assets.common import (
     scan_partitions,
 )
 from forestmap_assets.core.features.range_image import RangeImage
-from forestmap_assets.figures import circle_mask, cylinder_outlines, range_mask_figure
 from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.outputs.figures.range_images import (
+    circle_mask,
+    cylinder_outlines,
+    range_mask_figure,
+)
 
 
 def _image(table) -> RangeImage:
@@ -32,12 +36,12 @@ def _counts(series: pd.Series) -> dict[str, int]:
 
 
 def feature_assets(campaign: Campaign) -> list:
-    from forestmap_assets.core.circles import fit_circle_models
+    from forestmap_assets.core.features.circle_models import fit_circle_models
     from forestmap_assets.core.features.cylinders import assemble_cylinders
     from forestmap_assets.core.features.elevation import elevation_grid
     from forestmap_assets.core.features.segments import segment_mask, segment_scan_lines
-    from forestmap_assets.core.lines import extract_line_segments
-    from forestmap_assets.core.registration_.submaps import build_submap
+    from forestmap_assets.core.features.wall_lines import extract_line_segments
+    from forestmap_assets.core.registration.submaps import build_submap
 
     parts = scan_partitions(campaign)
     params = campaign.params

@@ -21,8 +21,8 @@ from forestmap_assets.assets.common import (
     scan_partitions,
 )
 from forestmap_assets.core.features.range_image import RangeImage
-from forestmap_assets.figures import range_mask_figure
 from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.outputs.figures.range_images import range_mask_figure
 
 
 def read_campaign_scan(campaign: Campaign, scan_id: str) -> RangeImage:

@@ -24,8 +24,9 @@ from forestmap_assets.assets.common import (
     md_table,
     png_metadata,
 )
-from forestmap_assets.figures import dbh_histogram, elevation_figure, network_figure
 from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.outputs.figures.elevation import elevation_figure
+from forestmap_assets.outputs.figures.mapping import dbh_histogram, network_figure
 
 POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
 

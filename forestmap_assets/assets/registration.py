@@ -21,8 +21,8 @@ from forestmap_assets.outputs.progress import report
 
 
 def refine_settings(campaign: Campaign):
-    """The campaign's ``refine`` parameter section as :class:`~..core.refine.RefineSettings`."""
-    from forestmap_assets.params_men import RefineSettings
+    """The campaign's ``refine`` parameter section as :class:`~forestmap_assets.params.men.RefineSettings`."""
+    from forestmap_assets.params.men import RefineSettings
 
     values = campaign.params.refine.model_dump()
     return RefineSettings(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in values.items()})
@@ -30,7 +30,7 @@ def refine_settings(campaign: Campaign):
 
 def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
     """Levelled points and hue (None without colour) of a stored ``range_images`` table."""
-    from forestmap_assets.core.registration_.colour import rgb_to_hue
+    from forestmap_assets.core.registration.colour import rgb_to_hue
 
     names = set(table.column_names)
     xyz = np.column_stack([table.column(c).to_numpy() for c in "xyz"]).astype(np.float64)
@@ -42,10 +42,10 @@ def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def registration_assets(campaign: Campaign) -> list:
-    from forestmap_assets.core.registration_.candidates import candidate_pairs as make_candidates
-    from forestmap_assets.core.registration_.pair_registrations import register_candidates
-    from forestmap_assets.core.registration_.refine import refine_registrations
-    from forestmap_assets.core.registration_.submaps import submap_reach
+    from forestmap_assets.core.registration.candidates import candidate_pairs as make_candidates
+    from forestmap_assets.core.registration.pair_registrations import register_candidates
+    from forestmap_assets.core.registration.refine import refine_registrations
+    from forestmap_assets.core.registration.submaps import submap_reach
 
     params = campaign.params
 
@@ -80,7 +80,7 @@ def registration_assets(campaign: Campaign) -> list:
         )
         if fourier and len(table) and (table["source"] == "no_prior").any():
             from forestmap_assets.core.features.range_image import RangeImage
-            from forestmap_assets.core.fourier import coarse_candidates
+            from forestmap_assets.core.registration.fourier_coarse import coarse_candidates
 
             images = {sid: RangeImage.from_table(t) for sid, t in (raw.get("range_images") or {}).items()}
             clouds = {sid: im.xyz[im.valid] for sid, im in images.items()}

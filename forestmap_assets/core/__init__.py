@@ -2,5 +2,5 @@
 mapping and exploration, one folder per part of the thesis, no Dagster.
 
 May import: ``forestmap_assets.core``, ``forestmap_assets.params`` and
-``forestmap_assets.params_men``, and numpy-level libraries (numpy, scipy, pandas, numba, open3d).
+``forestmap_assets.params.men``, and numpy-level libraries (numpy, scipy, pandas, numba, open3d).
 """

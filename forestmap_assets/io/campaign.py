@@ -206,7 +206,7 @@ def load_campaign(folder: str | Path) -> Campaign:
         prior4 = _numbers(raw["a_priori"], 4, where, f"{at}.a_priori")
         box = raw.get("search")
         if box is not None:
-            from forestmap_assets.core.registration_.pair_checks import search_box
+            from forestmap_assets.core.registration.pair_checks import search_box
 
             if not isinstance(box, dict):
                 raise _fail(where, f"{at}.search: expected a mapping, e.g. {{along_deg: 90, across_m: 0.5}}")

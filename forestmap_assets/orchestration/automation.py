@@ -75,7 +75,7 @@ class ProcessCampaignConfig(Config):
     "campaign through the forestmap runner (fresh definitions from its folder), then write its "
     "exports to CAMPAIGN/outputs.")
 def process_campaign_op(context: OpExecutionContext, config: ProcessCampaignConfig) -> None:
-    from forestmap_assets.runner import run_campaign
+    from forestmap_assets.orchestration.runner import run_campaign
 
     summary = run_campaign(config.folder, instance=context.instance, progress=context.log.info)
     if summary.failures:
@@ -168,8 +168,8 @@ def manifest_fingerprint(root: Path) -> str:
 
 def _campaign_status_fresh(campaign: Campaign, instance) -> bool:
     """Whether every asset of the campaign (fresh definitions) is fresh in the instance."""
+    from forestmap_assets.orchestration.status import stage_states
     from forestmap_assets.orchestration.workspace import build_definitions
-    from forestmap_assets.runner import stage_states
 
     defs = build_definitions([campaign])
     return all(s.state == "fresh" for s in stage_states(defs, campaign, instance))
@@ -241,7 +241,7 @@ def build_scan_files_sensor(loaded: list[Campaign], scan_jobs: list):
 
 def _scan_requests(instance, graph, campaign: Campaign, fps: dict[str, str]):
     """Partition requests, observations and per-scan run requests of one loaded campaign."""
-    from forestmap_assets.runner import resolver_for_graph
+    from forestmap_assets.orchestration.status import resolver_for_graph
 
     parts = scan_partitions(campaign)
     existing = set(instance.get_dynamic_partitions(parts.name))

@@ -84,7 +84,8 @@ def stage_table(campaign: Campaign) -> pd.Series:
     """State (``missing`` / ``stale`` / ``fresh``) of every pipeline stage of ``campaign``
     under its own manifest, from Dagster's stale-status resolver (as ``forestmap status``)."""
     from forestmap_assets.orchestration.definitions import build_definitions
-    from forestmap_assets.runner import get_instance, stage_states
+    from forestmap_assets.orchestration.instance import get_instance
+    from forestmap_assets.orchestration.status import stage_states
 
     states = stage_states(build_definitions([campaign]), campaign, get_instance())
     return pd.Series({s.stage: s.state for s in states}, name="state")

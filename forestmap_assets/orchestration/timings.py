@@ -13,7 +13,7 @@ import pandas as pd
 
 from forestmap_assets.assets.common import PIPELINE
 from forestmap_assets.io.campaign import Campaign
-from forestmap_assets.runner import get_instance
+from forestmap_assets.orchestration.instance import get_instance
 
 TIMING_COLUMNS = [
     "stage",

@@ -48,8 +48,8 @@ def webserver_command(host: str, port: int, dev: bool = False) -> list[str]:
 def start_webserver(host: str = "127.0.0.1", port: int | None = None, env: dict | None = None,
                     log=subprocess.DEVNULL) -> tuple[subprocess.Popen, str]:
     """Start the webserver in its own process group on the persistent instance (created if
-    needed, see :func:`forestmap_assets.runner.get_instance`); returns the process and its URL."""
-    from forestmap_assets.runner import get_instance
+    needed, see :func:`forestmap_assets.orchestration.instance.get_instance`); returns the process and its URL."""
+    from forestmap_assets.orchestration.instance import get_instance
 
     get_instance()  # sets $DAGSTER_HOME when unset and makes sure the folder exists
     port = port or free_port(host)

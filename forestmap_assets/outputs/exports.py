@@ -1,11 +1,11 @@
 """The files ``forestmap run`` writes (DESIGN.md section 4), read from the asset store.
 
 Beyond the CSVs of section 4: ``elevation.png``
-(:func:`~forestmap_assets.figures.elevation_figure`),
-``map.png`` (:func:`~forestmap_assets.render.render_map`), ``report.html``
+(:func:`~forestmap_assets.outputs.figures.elevation.elevation_figure`),
+``map.png`` (:func:`~forestmap_assets.outputs.render.render_map`), ``report.html``
 (:mod:`~forestmap_assets.report`), the registered point cloud of the campaign as ``cloud.laz``
 and ``cloud.ply`` (thinned to ``cloud_spacing_m``, each point with the index of its ``scan``;
-:mod:`~forestmap_assets.core.point_cloud`) and the tree list as ``trees.geojson`` (local
+:mod:`~forestmap_assets.core.mapping.point_cloud`) and the tree list as ``trees.geojson`` (local
 coordinates, for GIS users). Every file is written under a temporary name and renamed into place.
 """
 
@@ -140,9 +140,11 @@ def write_exports(
     ``cloud_spacing_m``: voxel size of the point cloud exports (0 keeps every point, None
     writes no cloud). ``picture``: render ``map.png``; ``report``: write ``report.html``
     with ``timings``, seconds per stage). ``progress``: a callable or
-    :class:`~forestmap_assets.progress.Progress` (a bar over the files)."""
-    from forestmap_assets.core.features.elevation import elevation_from_table, save_elevation_npz
-    from forestmap_assets.figures import elevation_figure, save_png
+    :class:`~forestmap_assets.outputs.progress.Progress` (a bar over the files)."""
+    from forestmap_assets.core.features.elevation import elevation_from_table
+    from forestmap_assets.outputs.elevation_files import save_elevation_npz
+    from forestmap_assets.outputs.figures.common import save_png
+    from forestmap_assets.outputs.figures.elevation import elevation_figure
     from forestmap_assets.outputs.progress import as_progress
 
     prog = as_progress(progress)
@@ -262,7 +264,7 @@ def _json_value(v):
 
 def campaign_cloud(campaign: Campaign, poses: pd.DataFrame, spacing_m: float) -> pd.DataFrame:
     """The registered point cloud of the campaign from the stored range images (see
-    :func:`~forestmap_assets.core.point_cloud.registered_cloud`)."""
+    :func:`~forestmap_assets.core.mapping.point_cloud.registered_cloud`)."""
     from forestmap_assets.core.mapping.point_cloud import registered_cloud
 
     placed = set(poses.loc[poses["registered"].astype(bool), "scan"])

@@ -1,7 +1,7 @@
 """Progress reporting for the command line: messages, progress bars for long steps, quiet mode.
 
 :class:`Progress` is a callable ``progress(message)`` (what
-:func:`~forestmap_assets.runner.run_campaign` already accepts) with bars on top:
+:func:`~forestmap_assets.orchestration.runner.run_campaign` already accepts) with bars on top:
 ``with progress.bar(n, "scans") as bar: ... bar.update(note=sid)``.
 Bars are drawn with tqdm on standard error when it is a terminal, and replaced by one line per
 finished step otherwise (logs stay readable); ``quiet`` silences both.

@@ -1,7 +1,8 @@
 """3-D rendering of the integrated map (``map.png``; JP Figs. 12-13, thesis Figs. 6.12-6.13).
 
 The scene: every cylinder segment as a truncated-cone tube (bark colour), the ground as the
-0.6 m rendering grid of :func:`~forestmap_assets.core.elevation.render_grid` (mean of the 5 lowest
+0.6 m rendering grid of :func:`~forestmap_assets.core.features.elevation.render_grid` (mean of the 5
+lowest
 0.1 m cells) drawn as two triangles per cell and coloured by elevation with a labelled scale,
 and every registered scan as a small coordinate frame (x red, y green, z blue; twice as large
 at the reference scan) with its name.
@@ -147,7 +148,7 @@ def ground_surface(
     import pyvista as pv
 
     from forestmap_assets.core.features.elevation import render_grid
-    from forestmap_assets.figures import remove_spikes
+    from forestmap_assets.outputs.figures.elevation import remove_spikes
 
     coarse = remove_spikes(render_grid(grid, render_cell_m, n_lowest), spike_m)
     verts, tris = surface_arrays(coarse)
@@ -196,7 +197,7 @@ def map_plotter(
     display = configure_offscreen()  # before the first VTK window is made
     import pyvista as pv
 
-    from forestmap_assets.figures import colour_limits, crop_box, crop_grid
+    from forestmap_assets.outputs.figures.elevation import colour_limits, crop_box, crop_grid
 
     if off_screen is None:
         off_screen = not display
@@ -384,7 +385,7 @@ def render_map(
 ) -> Path:
     """Write ``map.png`` (atomically): the pyvista scene of :func:`map_plotter`; with
     ``fallback`` a matplotlib 3-D picture when VTK cannot render here."""
-    from forestmap_assets.figures import save_png
+    from forestmap_assets.outputs.figures.common import save_png
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -421,7 +422,8 @@ def map_figure_mpl(
     """The same scene with matplotlib's 3-D axes (fallback when VTK cannot render): ground as
     a triangulated surface of the 0.6 m rendering grid, cylinders as thick lines, scan frames."""
     from forestmap_assets.core.features.elevation import render_grid
-    from forestmap_assets.figures import crop_box, crop_grid, ground_limits, new_figure
+    from forestmap_assets.outputs.figures.common import new_figure
+    from forestmap_assets.outputs.figures.elevation import crop_box, crop_grid, ground_limits
 
     fig = new_figure(10.0, 8.0)
     ax = fig.add_subplot(projection="3d")
@@ -479,7 +481,7 @@ def show_map(cylinders, grid=None, poses=None, *, interactive: bool | None = Non
             return p
         except ImportError:  # Jupyter without trame: the static picture below
             p.close()
-    from forestmap_assets.figures import new_figure
+    from forestmap_assets.outputs.figures.common import new_figure
 
     img = map_image(cylinders, grid, poses, **kwargs)
     fig = new_figure(img.shape[1] / 160, img.shape[0] / 160, layout=None)

@@ -87,7 +87,7 @@ def _img(data: bytes, alt: str) -> str:
 
 
 def _fig(fig, alt: str) -> str:
-    from forestmap_assets.figures import png_bytes
+    from forestmap_assets.outputs.figures.common import png_bytes
 
     return _img(png_bytes(fig, dpi=100), alt)
 
@@ -148,8 +148,13 @@ def build_report(
 
     Pictures already written to ``out_dir`` (``map.png``, ``elevation.png``) are embedded;
     the network, residual and DBH figures are drawn here."""
-    from forestmap_assets import figures as F
     from forestmap_assets.core.features.elevation import elevation_from_table
+    from forestmap_assets.outputs.figures.elevation import elevation_figure
+    from forestmap_assets.outputs.figures.mapping import (
+        dbh_histogram,
+        network_figure,
+        residual_figure,
+    )
 
     out_dir = Path(out_dir)
     omap = _load("optimal_map", campaign) or {}
@@ -239,9 +244,9 @@ def build_report(
         add(f"<div>{_img(elev_png.read_bytes(), 'merged elevation map')}</div>")
     elif "elevation" in integrated and poses is not None:
         grid = elevation_from_table(integrated["elevation"])
-        add(f"<div>{_fig(F.elevation_figure(grid, poses, trees), 'merged elevation map')}</div>")
+        add(f"<div>{_fig(elevation_figure(grid, poses, trees), 'merged elevation map')}</div>")
     if poses is not None:
-        add(f"<div>{_fig(F.network_figure(poses, regs, links), 'registration network')}</div>")
+        add(f"<div>{_fig(network_figure(poses, regs, links), 'registration network')}</div>")
     add("</div>")
 
     add("<h2>Poses</h2>")
@@ -323,7 +328,7 @@ def build_report(
         )
         add(
             _fig(
-                F.residual_figure(residuals, mp.residual_sigmas, mp.z_residual_sigmas), "residuals"
+                residual_figure(residuals, mp.residual_sigmas, mp.z_residual_sigmas), "residuals"
             )
         )
     else:
@@ -344,7 +349,7 @@ def build_report(
         truth_csv = campaign.root / "truth" / "trees.csv"
         if truth_csv.is_file():
             truth = pd.read_csv(truth_csv)
-        add(_fig(F.dbh_histogram(trees, truth), "DBH histogram"))
+        add(_fig(dbh_histogram(trees, truth), "DBH histogram"))
         add("</div><div>")
         add("<details><summary>the tree list</summary>")
         add(html_table(trees, {"dbh_m": 3, "visible_length_m": 2}))
@@ -368,7 +373,7 @@ def build_report(
         add(_card(int(props["feasible"].sum()) if len(props) else 0, "feasible positions"))
         add("</div><div class='row'><div>")
         with contextlib.suppress(Exception):  # the picture is a convenience, never a failure
-            from forestmap_assets.assets.exploration import write_next_vantage_png
+            from forestmap_assets.outputs.figures.exploration_map import write_next_vantage_png
 
             with tempfile.TemporaryDirectory() as tmp:
                 png = Path(tmp) / "next_vantage.png"

@@ -5,8 +5,9 @@ May import: ``core``, ``io``, ``params``; never ``assets``, ``outputs`` or ``orc
 """
 
 from forestmap_assets.sim.campaign import relative_pose, scan_ids, simulate_campaign
-from forestmap_assets.sim.forest import Forest, SceneMesh, make_forest
+from forestmap_assets.sim.forest import Forest, make_forest
 from forestmap_assets.sim.scanner import ScanPose, ScanResult, VirtualScanner
+from forestmap_assets.sim.scene_mesh import SceneMesh
 
 __all__ = [
     "Forest",

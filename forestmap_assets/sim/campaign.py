@@ -42,14 +42,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from forestmap_assets.sim.forest import (
-    KIND_STEM,
-    STEM_COLUMNS,
-    Forest,
-    breast_height_table,
-    make_forest,
-    stems_in_frame,
-)
+from forestmap_assets.sim.forest import Forest, make_forest
 from forestmap_assets.sim.scanner import (
     RESOLUTION_DIVISOR,
     ScanPose,
@@ -57,17 +50,17 @@ from forestmap_assets.sim.scanner import (
     VirtualScanner,
     rot_z,
 )
-from forestmap_assets.sim.sites import (
-    PILLAR_COLUMNS,
-    SITE_ENVIRONMENT,
-    SITES,
-    Site,
+from forestmap_assets.sim.scene_mesh import KIND_STEM
+from forestmap_assets.sim.site_assembly import Site
+from forestmap_assets.sim.site_meshes import PILLAR_COLUMNS
+from forestmap_assets.sim.site_truth import (
     lines_in_frame,
-    make_site,
     points_in_frame,
     visible_line_samples,
     visible_parts,
 )
+from forestmap_assets.sim.sites import SITE_ENVIRONMENT, SITES, make_site
+from forestmap_assets.sim.stems import STEM_COLUMNS, breast_height_table, stems_in_frame
 
 THESIS_IDS = "TSRQON"  # spec 10.1
 _ID_ORDER = THESIS_IDS + "MLKJIHGFEDCBAPUVWXYZ"

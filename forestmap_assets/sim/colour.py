@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from forestmap_assets.core.registration_.colour import hsl_to_rgb
-from forestmap_assets.sim.forest import (
+from forestmap_assets.core.registration.colour import hsl_to_rgb
+from forestmap_assets.sim.scene_mesh import (
     KIND_BRANCH,
     KIND_FOLIAGE,
     KIND_GROUND,

@@ -139,7 +139,7 @@ def evaluate_campaign(campaign_dir: str | Path, outputs: str | Path | None = Non
 def scan_stems(campaign_dir: str | Path, scan: str) -> pd.DataFrame:
     """True stems (``truth/stems.csv``, frame of the first scan) in the levelled frame of
     ``scan``, moved with ``truth/poses.csv``; adds the unit axis ``ax, ay, az``."""
-    from forestmap_assets.sim.forest import stems_in_frame
+    from forestmap_assets.sim.stems import stems_in_frame
 
     root = Path(campaign_dir)
     stems = pd.read_csv(root / "truth" / "stems.csv")
@@ -162,7 +162,7 @@ def visible_stem_length(xyz: np.ndarray, kind: np.ndarray, tree_id: np.ndarray,
     stem base; consecutive heights further apart than ``max_gap_m`` do not count as covered.
     ``xyz`` are the (noisy) levelled points of the scan, ``kind``/``tree_id`` its labels.
     """
-    from forestmap_assets.sim.forest import KIND_STEM
+    from forestmap_assets.sim.scene_mesh import KIND_STEM
 
     pts = np.asarray(xyz, float).reshape(-1, 3)
     sel = (np.asarray(kind).ravel() == KIND_STEM) & np.all(np.isfinite(pts), axis=1)

@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
-from forestmap_assets.sim.forest import (
+from forestmap_assets.sim.scene_mesh import (
     KIND_BRANCH,
     KIND_FOLIAGE,
     KIND_GROUND,
@@ -101,7 +101,7 @@ class VirtualScanner:
     """Riegl LMS-Z210-like scanner casting rays into a labelled mesh (spec 1.1).
 
     ``target`` is a :class:`~forestmap_assets.sim.forest.Forest` or a
-    :class:`~forestmap_assets.sim.forest.SceneMesh`. All beam and geometry numbers are those of
+    :class:`~forestmap_assets.sim.scene_mesh.SceneMesh`. All beam and geometry numbers are those of
     spec 1.1 (JP §II-A field of view). (inferred): ``sub_rays`` per mixed-candidate pixel,
     ``footprint_fraction`` (share of the nominal footprint radius at which a first return still
     triggers), ``mix_min_step_m`` (how much nearer a sub-ray return must be to replace the

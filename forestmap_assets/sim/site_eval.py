@@ -2,7 +2,8 @@
 
 * :func:`line_recall`: wall/ceiling line features of one scan against the truth corner lines
   (spec 5, 13.16): recall = share of the *visible* truth corner (sampled every 0.1 m, ray-cast
-  visibility, :func:`~.sites.visible_line_samples`) lying within ``match_xy_m`` horizontally and
+  visibility, :func:`~.site_truth.visible_line_samples`) lying within ``match_xy_m`` horizontally
+  and
   ``match_z_m`` vertically of a detected line whose direction is within ``match_deg``; precision
   = share of detected line length near some truth line; position error = horizontal and vertical
   distance of the detected lines' points to their truth line.
@@ -22,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.geometry import wrap_deg
-from forestmap_assets.core.registration_.submaps import sample_segments
+from forestmap_assets.core.registration.submaps import sample_segments
 
 LINE_EXTRA = ("max_beams", "step_fraction", "hit_margin_m", "min_wall_extent_m",
               "top_tolerance_m", "wall_depth_cells", "border_xy", "link_cells",
@@ -161,8 +162,8 @@ def extract_scan_features(image, params, *, circle_options: dict | None = None) 
     image with ``params`` (a :class:`~forestmap_assets.params.Params`), exactly the core calls
     of the feature assets (``circle_options`` go to ``fit_circle_models``)."""
     from forestmap_assets.core.features.cylinders import extract_features
-    from forestmap_assets.core.lines import extract_line_segments
-    from forestmap_assets.core.registration_.submaps import build_submap
+    from forestmap_assets.core.features.wall_lines import extract_line_segments
+    from forestmap_assets.core.registration.submaps import build_submap
 
     feats = extract_features(image, params, **(circle_options or {}))
     lp = params.lines
@@ -221,7 +222,7 @@ def pose_errors_vs_truth(poses: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFra
 
 def scan_site(site, *, resolution: str = "full", seed: int = 0, height_m: float = 1.3,
               scanner_kwargs: dict | None = None) -> list:
-    """Scan a :class:`~.sites.Site` from each of its scan positions (cart at ``height_m`` above
+    """Scan a :class:`~.site_assembly.Site` from each of its scan positions (cart at ``height_m`` above
     the ground, levelled); returns the :class:`~.scanner.ScanResult` list (world poses in
     ``result.pose``)."""
     from forestmap_assets.sim.scanner import ScanPose, VirtualScanner

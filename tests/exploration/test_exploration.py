@@ -7,14 +7,39 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core import exploration as X
-from forestmap_assets.core.exploration_.occlusion import detect_occlusions
+from forestmap_assets.core.exploration.candidates import PROPOSAL_COLUMNS, evaluate_positions
+from forestmap_assets.core.exploration.frontier import (
+    GROUND,
+    OBSTACLE,
+    UNMAPPED,
+    classify_cells,
+    coverage_figures,
+    frontier_cells,
+)
+from forestmap_assets.core.exploration.grid import ExplorationGrid, local_ground
+from forestmap_assets.core.exploration.occlusion import detect_occlusions
+from forestmap_assets.core.exploration.paths import (
+    astar,
+    navigable_cells,
+    path_distances,
+    path_from,
+    walked_cells,
+)
+from forestmap_assets.core.exploration.planner import plan_next_vantage
+from forestmap_assets.core.exploration.planner_thesis import preferred_heading, zone_of
+from forestmap_assets.core.exploration.surface import observed_surface, surface_points
+from forestmap_assets.core.exploration.visibility import (
+    stem_visibility,
+    visible_cells,
+    visible_stems,
+)
 from forestmap_assets.core.features.elevation import ElevationGrid
 from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.params.men import ExplorationConfig
 
 
 def _grid(bounds=(0.0, 10.0, 0.0, 10.0), cell=0.5, z_range=(-0.5, 3.0), dz=0.1, plot=None):
-    return X.ExplorationGrid.from_bounds(bounds, cell, z_range, dz=dz, plot=plot)
+    return ExplorationGrid.from_bounds(bounds, cell, z_range, dz=dz, plot=plot)
 
 
 def _cells_points(grid, ix, iy, heights, n=5):
@@ -26,7 +51,7 @@ def _cells_points(grid, ix, iy, heights, n=5):
 
 # ---- V19, V20 ----------------------------------------------------------------------------------
 def test_v19_grid_indexing():
-    g = X.ExplorationGrid.from_bounds((-30.0, 5.0, -10.0, 10.0), 0.2, (-2.0, 3.0), n_z=25)
+    g = ExplorationGrid.from_bounds((-30.0, 5.0, -10.0, 10.0), 0.2, (-2.0, 3.0), n_z=25)
     assert (g.nx, g.ny, g.nz) == (175, 100, 25) and g.dz == pytest.approx(0.2)
     idx, ok = g.flat_index([-30 + 0.1], [-10 + 0.1], [-2 + 0.1])
     assert ok[0] and idx[0] == 0
@@ -41,22 +66,22 @@ def test_v19_grid_indexing():
 
 def test_v20_classification_thesis_heights_and_sticky_obstacles():
     # thesis form: absolute heights, ground ~ -1.6 m, obstacle above -1.3 m, ceiling cut at 1.2 m
-    g = X.ExplorationGrid.from_bounds((0.0, 4.0, 0.0, 4.0), 0.2, (-2.0, 3.0), n_z=25)
+    g = ExplorationGrid.from_bounds((0.0, 4.0, 0.0, 4.0), 0.2, (-2.0, 3.0), n_z=25)
     kw = dict(obstacle_min_m=-1.3, clearance_m=1.2, min_obstacle_points=1)
     floor = _cells_points(g, np.arange(10), np.zeros(10, int), -1.6)
     g.add_points(floor)
     wall = _cells_points(g, [5], [5], np.arange(-1.6, 1.0, 0.1))
     g.add_points(wall)
-    c = X.classify_cells(g, **kw)
-    assert (c[np.arange(10), 0] == X.GROUND).all()
-    assert c[5, 5] == X.OBSTACLE
-    assert (c == X.UNMAPPED).sum() == c.size - 11
+    c = classify_cells(g, **kw)
+    assert (c[np.arange(10), 0] == GROUND).all()
+    assert c[5, 5] == OBSTACLE
+    assert (c == UNMAPPED).sum() == c.size - 11
     # a later scan with only floor points in the wall cell: once O, stays O (Eqs. 6.1-6.2)
     g.add_points(_cells_points(g, [5], [5], -1.6, n=50))
-    assert X.classify_cells(g, **kw)[5, 5] == X.OBSTACLE
+    assert classify_cells(g, **kw)[5, 5] == OBSTACLE
     # a ceiling above the cut does not make a hallway cell an obstacle
     g.add_points(_cells_points(g, [1], [0], 2.4))
-    assert X.classify_cells(g, **kw)[1, 0] == X.GROUND
+    assert classify_cells(g, **kw)[1, 0] == GROUND
 
 
 def test_forest_heights_relative_to_local_ground_on_a_slope():
@@ -70,20 +95,20 @@ def test_forest_heights_relative_to_local_ground_on_a_slope():
         y0=0.0,
         cell_m=0.1,
     )
-    g.ground_z = X.local_ground(elev, g, window_m=0.5)
+    g.ground_z = local_ground(elev, g, window_m=0.5)
     assert np.abs(g.ground_z - ground).max() < 0.12
     ix, iy = np.meshgrid(np.arange(g.nx), np.arange(g.ny), indexing="ij")
     pts = np.column_stack([g.cell_xy(ix.ravel(), iy.ravel()), ground.ravel() + 0.05])
     g.add_points(pts)
     bush = g.cell_xy([10], [10])[0]
     g.add_points(np.array([[bush[0], bush[1], 0.2 * bush[0] + h] for h in (0.4, 0.6, 0.8, 1.0)]))
-    c = X.classify_cells(g)
-    assert c[10, 10] == X.OBSTACLE and (c == X.OBSTACLE).sum() == 1
-    assert (c == X.GROUND).sum() == c.size - 1
+    c = classify_cells(g)
+    assert c[10, 10] == OBSTACLE and (c == OBSTACLE).sum() == 1
+    assert (c == GROUND).sum() == c.size - 1
     # the thesis's fixed-height rule would call the upper half of the slope obstacles
-    flat = X.ExplorationGrid.from_bounds((0.0, 10.0, 0.0, 10.0), 0.5, (-0.5, 3.0), dz=0.1)
+    flat = ExplorationGrid.from_bounds((0.0, 10.0, 0.0, 10.0), 0.5, (-0.5, 3.0), dz=0.1)
     flat.add_points(np.repeat(pts, 5, axis=0))
-    assert (X.classify_cells(flat) == X.OBSTACLE).sum() > 0.3 * c.size
+    assert (classify_cells(flat) == OBSTACLE).sum() > 0.3 * c.size
 
 
 def test_local_ground_ignores_a_bush_and_fills_gaps():
@@ -92,54 +117,54 @@ def test_local_ground_ignores_a_bush_and_fills_gaps():
     z[40:50, 40:50] = 0.0  # a bush whose lowest hit is 1 m above the ground
     z[:, 80:] = np.nan  # no data on the east side
     elev = ElevationGrid(z=z, x0=0.0, y0=0.0, cell_m=0.1)
-    gz = X.local_ground(elev, g, window_m=1.0)
+    gz = local_ground(elev, g, window_m=1.0)
     assert np.allclose(gz, -1.0)
     empty = ElevationGrid(z=np.full((1, 1), np.nan), x0=0.0, y0=0.0, cell_m=0.1)
-    assert np.allclose(X.local_ground(empty, g, default_z=-1.5), -1.5)
+    assert np.allclose(local_ground(empty, g, default_z=-1.5), -1.5)
 
 
 def test_frontier_and_coverage_figures():
     g = _grid(plot=[[0, 0], [10, 0], [10, 10], [0, 10]])
     ix, iy = np.meshgrid(np.arange(10), np.arange(g.ny), indexing="ij")  # west half mapped
     g.add_points(np.column_stack([g.cell_xy(ix.ravel(), iy.ravel()), np.zeros(ix.size)]))
-    c = X.classify_cells(g)
-    fr = X.frontier_cells(c, g.in_plot)
+    c = classify_cells(g)
+    fr = frontier_cells(c, g.in_plot)
     assert fr[9].all() and fr.sum() == g.ny
-    cov = X.coverage_figures(g, c)
+    cov = coverage_figures(g, c)
     assert cov["coverage"] == pytest.approx(0.5) and cov["unmapped_share"] == pytest.approx(0.5)
     assert cov["median_points_per_m2"] == pytest.approx(1 / 0.25)
     # a frontier against cells outside the plot is no frontier
     inside = np.zeros(g.shape, bool)
     inside[:10] = True
-    assert not X.frontier_cells(c, inside).any()
+    assert not frontier_cells(c, inside).any()
 
 
 # ---- paths ----------------------------------------------------------------------------------
 def test_astar_matches_dijkstra_and_walks_around_a_wall():
     nav = np.ones((30, 20), bool)
     nav[15, :17] = False  # a wall with a gap at the top
-    d, pred = X.path_distances(nav, (2, 2), 0.5)
-    path, length = X.astar(nav, (2, 2), (28, 2), 0.5)
+    d, pred = path_distances(nav, (2, 2), 0.5)
+    path, length = astar(nav, (2, 2), (28, 2), 0.5)
     assert length == pytest.approx(d[28, 2])
     assert nav[path[:, 0], path[:, 1]].all() and (path[:, 1] >= 17).any()
     steps = np.abs(np.diff(path, axis=0))
     assert steps.max() == 1 and (steps.sum(1) >= 1).all()
-    p2 = X.path_from(pred, (28, 2), nav.shape)
+    p2 = path_from(pred, (28, 2), nav.shape)
     seg = np.hypot(*np.diff(p2, axis=0).T).sum() * 0.5
     assert seg == pytest.approx(d[28, 2]) and tuple(p2[0]) == (2, 2)
     nav[15, :] = False
-    d, _ = X.path_distances(nav, (2, 2), 0.5)
-    assert np.isinf(d[28, 2]) and X.astar(nav, (2, 2), (28, 2))[1] == np.inf
+    d, _ = path_distances(nav, (2, 2), 0.5)
+    assert np.isinf(d[28, 2]) and astar(nav, (2, 2), (28, 2))[1] == np.inf
 
 
 def test_no_corner_cutting_and_clearance():
     nav = np.ones((5, 5), bool)
     nav[1, 2] = nav[2, 1] = False
-    path, length = X.astar(nav, (1, 1), (2, 2), 1.0)
+    path, length = astar(nav, (1, 1), (2, 2), 1.0)
     assert length > np.sqrt(2) + 1e-9  # the diagonal between two blocked cells is not allowed
-    classes = np.full((20, 20), X.GROUND, np.uint8)
-    classes[10, 10] = X.OBSTACLE
-    nav = X.navigable_cells(classes, 0.25, obstacle_clearance_m=0.5)
+    classes = np.full((20, 20), GROUND, np.uint8)
+    classes[10, 10] = OBSTACLE
+    nav = navigable_cells(classes, 0.25, obstacle_clearance_m=0.5)
     assert not nav[10, 12] and nav[10, 13] and nav[0, 0]
 
 
@@ -148,7 +173,7 @@ def test_visible_cells_respect_trunks_obstacles_and_blind_disc():
     g = _grid((-10.0, 10.0, -10.0, 10.0), 0.25)
     occ = np.zeros(g.shape, bool)
     stems = np.array([[3.0, 0.0, 0.3]])
-    vis = X.visible_cells(
+    vis = visible_cells(
         g, [[0.0, 0.0]], occ, stems, radius_m=9.0, blind_radius_m=1.5, n_rays=1440
     )[0]
     vis = vis.reshape(g.shape)
@@ -164,7 +189,7 @@ def test_visible_cells_respect_trunks_obstacles_and_blind_disc():
     # an obstacle cell stops the ray and is itself seen
     ox, oy, _ = g.cell_of(0.0, 4.0)
     occ[ox, oy] = True
-    vis2 = X.visible_cells(
+    vis2 = visible_cells(
         g, [[0.0, 0.0]], occ, stems, radius_m=9.0, blind_radius_m=1.5, n_rays=1440
     )[0]
     vis2 = vis2.reshape(g.shape)
@@ -173,31 +198,31 @@ def test_visible_cells_respect_trunks_obstacles_and_blind_disc():
 
 def test_visible_stems_hidden_by_a_nearer_trunk_and_range():
     stems = np.array([[3.0, 0.0, 0.4], [6.0, 0.0, 0.15], [6.0, 3.0, 0.15], [20.0, 0.0, 0.3]])
-    vis = X.visible_stems([[0.0, 0.0], [6.0, -3.0]], stems, range_m=15.0)
+    vis = visible_stems([[0.0, 0.0], [6.0, -3.0]], stems, range_m=15.0)
     assert vis[0].tolist() == [True, False, True, False]  # (6, 0) behind (3, 0); (20, 0) too far
     assert vis[1].tolist() == [True, True, False, True]  # (6, 3) behind (6, 0); (20, 0) at 14.3 m
-    assert not X.visible_stems([[0.0, 0.0]], stems, range_m=2.0).any()
+    assert not visible_stems([[0.0, 0.0]], stems, range_m=2.0).any()
     # too few pixels across a thin far stem for the pipeline to find it
-    narrow = X.visible_stems([[0.0, 0.0]], stems, range_m=15.0, min_width_rad=0.1)[0]
+    narrow = visible_stems([[0.0, 0.0]], stems, range_m=15.0, min_width_rad=0.1)[0]
     assert narrow.tolist() == [True, False, False, False]
-    cfg = X.ExplorationConfig(angular_step_deg=0.44, stem_min_pixels=4)
-    assert X.stem_visibility(cfg)["min_width_rad"] == pytest.approx(np.radians(0.44) * 4)
+    cfg = ExplorationConfig(angular_step_deg=0.44, stem_min_pixels=4)
+    assert stem_visibility(cfg)["min_width_rad"] == pytest.approx(np.radians(0.44) * 4)
 
 
 # ---- V21 heading, zones -----------------------------------------------------------------------
 def test_v21_preferred_heading():
     cur = np.array([0.0, 0.0])
-    h, fu, fw = X.preferred_heading(cur, [[3.0, 4.0]], np.zeros((0, 2)), 10.0)
+    h, fu, fw = preferred_heading(cur, [[3.0, 4.0]], np.zeros((0, 2)), 10.0)
     assert np.allclose(h / np.linalg.norm(h), [0.6, 0.8]) and np.allclose(fw, 0)
-    h, _, _ = X.preferred_heading(
+    h, _, _ = preferred_heading(
         cur, [[3.0, 0.0], [-3.0, 0.0], [0.0, 2.0], [0.0, -2.0]], np.zeros((0, 2)), 10.0
     )
     assert np.allclose(h, 0.0, atol=1e-12)
     d, diag = 2.0, 10.0
-    h, fu, fw = X.preferred_heading(cur, np.zeros((0, 2)), [[d, 0.0]], diag, w_wall=0.5)
+    h, fu, fw = preferred_heading(cur, np.zeros((0, 2)), [[d, 0.0]], diag, w_wall=0.5)
     assert np.allclose(fw, [-0.5 * diag**2 / d**2, 0.0])  # away from the wall, W_w D^2 / d^2
     # opposite attraction and repulsion: the tangential force (F_w,y, -F_w,x) is added
-    h, fu, fw = X.preferred_heading(
+    h, fu, fw = preferred_heading(
         cur, [[5.0, 0.1]], [[1.0, -0.01]], 10.0, tangential_trigger_deg=150
     )
     ft = h - fu - fw
@@ -205,7 +230,7 @@ def test_v21_preferred_heading():
 
 
 def test_zones():
-    assert X.zone_of(np.radians([0.0, 22.0, 23.0, 90.0, 180.0, 337.0, -10.0])).tolist() == [
+    assert zone_of(np.radians([0.0, 22.0, 23.0, 90.0, 180.0, 337.0, -10.0])).tolist() == [
         0,
         0,
         1,
@@ -237,18 +262,18 @@ def _ground_scan(step_deg: float, height=1.5, max_range=20.0, post=None):
 def test_observed_surface_fills_between_beams_but_not_across_occlusions():
     image = _ground_scan(1.0, post=(4.0, 4.3, -0.5, 0.5))
     ob = detect_occlusions(image)
-    filled = X.observed_surface(image, ob.tilt_pair, ob.pan_pair, wrap=ob.wrap)
-    bare = X.observed_surface(
+    filled = observed_surface(image, ob.tilt_pair, ob.pan_pair, wrap=ob.wrap)
+    bare = observed_surface(
         image, np.ones_like(ob.tilt_pair), np.ones_like(ob.pan_pair), wrap=ob.wrap
     )
     assert filled["n_points"].sum() == bare["n_points"].sum() == int(image.valid.sum())
     assert bare["n_filled"].sum() == 0 and filled["n_filled"].sum() > 0
     g_f, g_b = (
-        X.ExplorationGrid.from_bounds((-12, 12, -12, 12), 0.25, (-3.0, 3.0), dz=0.1)
+        ExplorationGrid.from_bounds((-12, 12, -12, 12), 0.25, (-3.0, 3.0), dz=0.1)
         for _ in range(2)
     )
     for g, s in ((g_f, filled), (g_b, bare)):
-        pts, n_p, n_f = X.surface_points(s, 0.05, (0.0, 0.0, 1.5, 0.0), max_range_m=11.0)
+        pts, n_p, n_f = surface_points(s, 0.05, (0.0, 0.0, 1.5, 0.0), max_range_m=11.0)
         g.add_points(pts, n_p + n_f, measured=n_p)
     ring = np.hypot(*np.meshgrid(*g_f.centres(), indexing="ij"))
     band = (ring > 7.0) & (ring < 10.0)
@@ -263,7 +288,7 @@ def test_observed_surface_fills_between_beams_but_not_across_occlusions():
 def _half_mapped_scene(n_stems=14, seed=3):
     """A 20 m plot mapped west of x = 8 m from a scan at (3, 10), stems scattered."""
     rng = np.random.default_rng(seed)
-    g = X.ExplorationGrid.from_bounds(
+    g = ExplorationGrid.from_bounds(
         (0.0, 20.0, 0.0, 20.0), 0.25, (-0.5, 3.0), dz=0.1, plot=[[0, 0], [20, 0], [20, 20], [0, 20]]
     )
     g.ground_z = np.zeros(g.shape)
@@ -279,10 +304,10 @@ def _half_mapped_scene(n_stems=14, seed=3):
 
 def test_plan_ranks_reachable_frontier_positions_with_overlap():
     g, stems = _half_mapped_scene()
-    cfg = X.ExplorationConfig(min_common_stems=3, n_rays=360)
-    plan = X.plan_next_vantage(g, stems, np.array([[3.0, 10.0]]), ["T"], cfg)
+    cfg = ExplorationConfig(min_common_stems=3, n_rays=360)
+    plan = plan_next_vantage(g, stems, np.array([[3.0, 10.0]]), ["T"], cfg)
     props = plan.proposals
-    assert list(props.columns) == X.PROPOSAL_COLUMNS and len(props) > 5
+    assert list(props.columns) == PROPOSAL_COLUMNS and len(props) > 5
     assert props["rank"].tolist() == list(range(1, len(props) + 1))
     top = props[props["feasible"]]
     assert len(top) and (top["common_stems"] >= 3).all() and (top["reference_scan"] == "T").all()
@@ -298,20 +323,20 @@ def test_plan_ranks_reachable_frontier_positions_with_overlap():
     )
     assert plan.coverage["coverage"] == pytest.approx(0.4, abs=0.02)
     # an impossible overlap requirement leaves no feasible position
-    strict = X.plan_next_vantage(
+    strict = plan_next_vantage(
         g,
         stems,
         np.array([[3.0, 10.0]]),
         ["T"],
-        X.ExplorationConfig(min_common_stems=100, n_rays=360),
+        ExplorationConfig(min_common_stems=100, n_rays=360),
     )
     assert not strict.proposals["feasible"].any()
-    area = X.plan_next_vantage(
+    area = plan_next_vantage(
         g,
         stems,
         np.array([[3.0, 10.0]]),
         ["T"],
-        X.ExplorationConfig(overlap_rule="area", min_overlap=0.5, n_rays=360),
+        ExplorationConfig(overlap_rule="area", min_overlap=0.5, n_rays=360),
     )
     ok = area.proposals[area.proposals["feasible"]]
     assert len(ok) and (ok["overlap_share"] >= 0.5).all()
@@ -320,29 +345,29 @@ def test_plan_ranks_reachable_frontier_positions_with_overlap():
 def test_stems_without_dbh_attract_a_second_look():
     g, stems = _half_mapped_scene()
     cur = np.array([[3.0, 10.0]])
-    base = X.plan_next_vantage(
-        g, stems, cur, ["T"], X.ExplorationConfig(min_common_stems=3, n_rays=360)
+    base = plan_next_vantage(
+        g, stems, cur, ["T"], ExplorationConfig(min_common_stems=3, n_rays=360)
     )
     # the stem farthest from the best plain proposal has no DBH yet
     b0 = base.proposals.iloc[0]
     far = int(np.argmax(np.hypot(stems[:, 0] - b0.x, stems[:, 1] - b0.y)))
     incomplete = np.zeros(len(stems), bool)
     incomplete[far] = True
-    cfg = X.ExplorationConfig(min_common_stems=3, n_rays=360, stem_bonus_m2=500.0)
-    plan = X.plan_next_vantage(g, stems, cur, ["T"], cfg, incomplete=incomplete)
+    cfg = ExplorationConfig(min_common_stems=3, n_rays=360, stem_bonus_m2=500.0)
+    plan = plan_next_vantage(g, stems, cur, ["T"], cfg, incomplete=incomplete)
     best = plan.proposals.iloc[0]
     assert best.incomplete_stems == 1 and b0.incomplete_stems == 0
     assert best.expected_gain_m2 == pytest.approx(best.expected_new_m2 + 500.0)
-    seen = X.visible_stems([[best.x, best.y]], stems, range_m=cfg.stem_range_m)[0]
+    seen = visible_stems([[best.x, best.y]], stems, range_m=cfg.stem_range_m)[0]
     assert seen[far]
 
 
 def test_v22_thesis_strategy():
     g, stems = _half_mapped_scene()
-    cfg = X.ExplorationConfig(
+    cfg = ExplorationConfig(
         strategy="thesis", overlap_rule="area", min_overlap=0.5, coverage_radius_m=8.0, n_rays=360
     )
-    plan = X.plan_next_vantage(g, stems, np.array([[3.0, 10.0]]), ["T"], cfg)
+    plan = plan_next_vantage(g, stems, np.array([[3.0, 10.0]]), ["T"], cfg)
     props = plan.proposals
     assert 1 <= len(props) <= 10 and plan.zone is not None
     cur = np.array([3.0, 10.0])
@@ -350,21 +375,21 @@ def test_v22_thesis_strategy():
     cand = props.iloc[1:]
     assert plan.frontier[cand["ix"], cand["iy"]].all()
     ang = np.arctan2(cand["y"] - cur[1], cand["x"] - cur[0])
-    assert (X.zone_of(ang) == plan.zone).all()
+    assert (zone_of(ang) == plan.zone).all()
     chosen = props.iloc[0]
     path = plan.paths[1]
     assert np.hypot(*(path[-1] - [chosen.x, chosen.y])) < 1e-9  # the vantage lies on the A* path
     assert chosen.overlap_share >= 0.5
     # the next cell farther along the full path to the candidate has overlap < 50 %
-    full, _ = X.astar(
-        X.navigable_cells(plan.classes, g.cell_m, walked=X.walked_cells(g, cur[None], 1.8)),
+    full, _ = astar(
+        navigable_cells(plan.classes, g.cell_m, walked=walked_cells(g, cur[None], 1.8)),
         plan.current,
         _candidate_of(plan, cfg, g),
         g.cell_m,
     )
     k = len(path)
     if k < len(full):
-        nxt = X.evaluate_positions(
+        nxt = evaluate_positions(
             g,
             plan.classes,
             g.cell_xy(full[k : k + 1, 0], full[k : k + 1, 1]),
@@ -379,14 +404,14 @@ def test_v22_thesis_strategy():
 def _candidate_of(plan, cfg, g):
     """The thesis candidate the chosen vantage was shrunk from (recomputed as the planner does)."""
     cur = g.cell_xy(*plan.current)[0]
-    walked = X.walked_cells(g, cur[None], cfg.blind_radius_m)
-    nav = X.navigable_cells(
+    walked = walked_cells(g, cur[None], cfg.blind_radius_m)
+    nav = navigable_cells(
         plan.classes, g.cell_m, obstacle_clearance_m=cfg.obstacle_clearance_m, walked=walked
     )
-    dist, _ = X.path_distances(nav, plan.current, g.cell_m)
+    dist, _ = path_distances(nav, plan.current, g.cell_m)
     fc = np.argwhere(plan.frontier & np.isfinite(dist))
     fxy = g.cell_xy(fc[:, 0], fc[:, 1])
-    fz = X.zone_of(np.arctan2(fxy[:, 1] - cur[1], fxy[:, 0] - cur[0]))
+    fz = zone_of(np.arctan2(fxy[:, 1] - cur[1], fxy[:, 0] - cur[0]))
     zc = fc[fz == plan.zone]
     top = zc[np.argsort(-dist[zc[:, 0], zc[:, 1]], kind="stable")[:10]]
     ang = np.arctan2(*(g.cell_xy(top[:, 0], top[:, 1]) - cur)[:, ::-1].T)
@@ -431,7 +456,8 @@ def test_assets_occlusion_and_next_vantage_points(tmp_path):
     ):
         assets = assets + exploration_assets(campaign)
     defs = Definitions(assets=assets, resources={"io_manager": ParquetStore()})
-    from forestmap_assets.runner import QUIET, get_instance
+    from forestmap_assets.orchestration.instance import get_instance
+    from forestmap_assets.orchestration.runner import QUIET
 
     instance = get_instance()
     instance.add_dynamic_partitions(f"{campaign.key}__scans", ["T"])
@@ -509,9 +535,9 @@ def test_config_from_a_parameter_section():
 
     section = getattr(Params(), "exploration", None)
     if section is not None:  # the parameter model's defaults are the planner's
-        assert asdict(X.ExplorationConfig.from_params(section)) == asdict(X.ExplorationConfig())
+        assert asdict(ExplorationConfig.from_params(section)) == asdict(ExplorationConfig())
     values = {"cell_m": 0.5, "plot": [[0, 0], [4, 0], [4, 4]], "other": 1}
-    cfg = X.ExplorationConfig.from_params(values)
+    cfg = ExplorationConfig.from_params(values)
     assert cfg.cell_m == 0.5 and cfg.plot == ((0.0, 0.0), (4.0, 0.0), (4.0, 4.0))
     with pytest.raises(TypeError):
-        X.ExplorationConfig(unknown=1)
+        ExplorationConfig(unknown=1)

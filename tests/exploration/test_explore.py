@@ -7,14 +7,11 @@ import pandas as pd
 import pytest
 import yaml
 
-from forestmap_assets.explore import (
-    STEP_COLUMNS,
-    SurveyWriter,
-    explore,
-    grid_positions,
-    make_plot,
-    random_positions,
-)
+from forestmap_assets.explore.baseline_survey import grid_positions, random_positions
+from forestmap_assets.explore.planned_survey import explore
+from forestmap_assets.explore.survey_record import STEP_COLUMNS
+from forestmap_assets.explore.survey_writer import SurveyWriter
+from forestmap_assets.explore.virtual_plot import make_plot
 from forestmap_assets.io.campaign import load_campaign
 
 

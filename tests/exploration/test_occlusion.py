@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forestmap_assets.core.exploration_.occlusion import (
+from forestmap_assets.core.exploration.occlusion import (
     boundaries_table,
     detect_occlusions,
     occlusion_threshold,

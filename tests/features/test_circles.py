@@ -9,19 +9,19 @@ import pandas as pd
 import pytest
 from helpers.synthetic import Box, Cylinder, Scene, grid, render
 
-from forestmap_assets.core import circles as C
-from forestmap_assets.core.circles import (
+from forestmap_assets.core.features._circle_kernels import HAVE_NUMBA
+from forestmap_assets.core.features.circle_axes import estimate_axes
+from forestmap_assets.core.features.circle_fit import fit_circles_2d
+from forestmap_assets.core.features.circle_models import (
     CIRCLE_COLUMNS,
     REJECT_REASONS,
-    estimate_axes,
     final_circles,
     fit_circle_models,
-    fit_circles_2d,
 )
 from forestmap_assets.core.features.segments import segment_scan_lines
 from forestmap_assets.params import CircleParams, SegmentationParams, resolve_params
 
-ENGINES = ["numpy"] + (["numba"] if C.HAVE_NUMBA else [])
+ENGINES = ["numpy"] + (["numba"] if HAVE_NUMBA else [])
 
 
 def _arcs(specs, n=40, noise=0.0, seed=0, span_deg=150):

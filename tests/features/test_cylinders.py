@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from helpers.synthetic import Cylinder, Scene, Wall, forest_scene, grid, render, visible_length_m
 
-from forestmap_assets.core.circles import CIRCLE_COLUMNS
+from forestmap_assets.core.features.circle_models import CIRCLE_COLUMNS
 from forestmap_assets.core.features.cylinders import (
     CYLINDER_COLUMNS,
     assemble_cylinders,

@@ -6,8 +6,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core import lines as L
+from forestmap_assets.core.features.free_space_border import border_cells, border_chains
+from forestmap_assets.core.features.occupancy_grid import FREE, OCCUPIED, UNKNOWN, occupancy_grid
 from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
+from forestmap_assets.core.features.wall_lines import (
+    LINE_COLUMNS,
+    empty_line_table,
+    extract_line_segments,
+    fit_line,
+    tangent_splits,
+    turning_angles,
+)
 from forestmap_assets.params import resolve_params
 
 INDOOR = resolve_params("indoor").lines
@@ -76,8 +85,8 @@ def _wall_coverage(df: pd.DataFrame, axis: int, value: float, z: float, tol: flo
 
 @pytest.mark.parametrize("tilt", [(0.0, 0.0), (2.0, -3.0)])
 def test_corridor_wall_ceiling_lines_found(tilt):
-    df = L.extract_line_segments(_image(_room_planes(), tilt=tilt), INDOOR)
-    assert list(df.columns) == L.LINE_COLUMNS
+    df = extract_line_segments(_image(_room_planes(), tilt=tilt), INDOOR)
+    assert list(df.columns) == LINE_COLUMNS
     assert df["line_id"].tolist() == list(range(len(df)))
     # Both long walls: >= 85 % of their 12 m recalled within 0.1 m of the corner line.
     assert _wall_coverage(df, axis=1, value=HI[1], z=HI[2], tol=0.1) >= 0.85
@@ -100,7 +109,7 @@ def test_corridor_wall_ceiling_lines_found(tilt):
 
 
 def test_corridor_outdoor_preset_coarser_cells():
-    df = L.extract_line_segments(_image(_room_planes(), rows=180, cols=1500), OUTDOOR)
+    df = extract_line_segments(_image(_room_planes(), rows=180, cols=1500), OUTDOOR)
     assert _wall_coverage(df, axis=1, value=HI[1], z=HI[2], tol=0.2) >= 0.8
     assert _wall_coverage(df, axis=1, value=LO[1], z=HI[2], tol=0.2) >= 0.8
     assert (_inclination(df) <= OUTDOOR.max_inclination_deg).all()
@@ -109,8 +118,8 @@ def test_corridor_outdoor_preset_coarser_cells():
 def test_inclination_gate_on_sloped_ceiling():
     """Ceiling rising 8 deg along the corridor: its long edge lines are inclined 8 deg."""
     img = _image(_room_planes(ceiling_slope_deg=8.0))
-    strict = L.extract_line_segments(img, INDOOR)
-    loose = L.extract_line_segments(img, INDOOR.model_copy(update={"max_inclination_deg": 15.0}))
+    strict = extract_line_segments(img, INDOOR)
+    loose = extract_line_segments(img, INDOOR.model_copy(update={"max_inclination_deg": 15.0}))
     along_x = lambda df: np.abs(df["x1"] - df["x0"]) > 0.9 * df["length_m"]  # noqa: E731
     assert not along_x(strict).any()
     assert (_inclination(strict) <= 5.0).all() and len(strict) >= 2  # the level end-wall lines
@@ -124,19 +133,19 @@ def test_inclination_gate_on_sloped_ceiling():
 def test_open_ground_plane_gives_no_lines(params):
     img = _image([((0, 0, -1), 1.3)], rows=120, cols=900, noise=0.025)
     assert img.valid.mean() > 0.4
-    grid = L.occupancy_grid(img, params.cell_m, params.max_range_m)
-    border = L.border_cells(grid, img.xyz[img.valid & (img.range_m <= params.max_range_m)])
+    grid = occupancy_grid(img, params.cell_m, params.max_range_m)
+    border = border_cells(grid, img.xyz[img.valid & (img.range_m <= params.max_range_m)])
     assert border.empty
-    assert L.extract_line_segments(img, params).empty
+    assert extract_line_segments(img, params).empty
 
 
 def test_empty_disabled_and_all_nan_give_well_formed_empty_tables():
     img = _image(_room_planes(), rows=60, cols=300)
-    off = L.extract_line_segments(img, INDOOR.model_copy(update={"enabled": False}))
+    off = extract_line_segments(img, INDOOR.model_copy(update={"enabled": False}))
     nan = RangeImage(np.full((20, 40), np.nan, np.float32), np.linspace(0, 39, 40),
                      np.linspace(10, -9, 20))
-    for df in (off, L.extract_line_segments(nan, INDOOR), L.empty_line_table()):
-        assert df.empty and list(df.columns) == L.LINE_COLUMNS
+    for df in (off, extract_line_segments(nan, INDOOR), empty_line_table()):
+        assert df.empty and list(df.columns) == LINE_COLUMNS
         assert df["line_id"].dtype == np.int64 and df["n_points"].dtype == np.int64
         assert df["x0"].dtype == np.float64
     assert resolve_params("forest").lines.enabled is False
@@ -145,40 +154,40 @@ def test_empty_disabled_and_all_nan_give_well_formed_empty_tables():
 def test_occupancy_free_before_hit_occupied_at_hit_unknown_elsewhere():
     az = np.array([0.0, 90.0, 180.0])
     img = RangeImage(np.array([[2.05, np.nan, 0.93]], np.float32), az, np.array([0.0]))
-    grid = L.occupancy_grid(img, cell_m=0.1, max_range_m=40.0, hit_margin_m=0.0)
+    grid = occupancy_grid(img, cell_m=0.1, max_range_m=40.0, hit_margin_m=0.0)
     # The NaN beam (+y) marks nothing: the grid does not even extend along y.
     assert grid.state.shape[1] == 1 and grid.state.shape[2] == 1
     row = grid.state[:, 0, 0]
     ix = np.arange(grid.lo[0], grid.lo[0] + row.size)
     state = dict(zip(ix.tolist(), row.tolist(), strict=True))
-    assert state[20] == L.OCCUPIED and state[-10] == L.OCCUPIED  # hits at x=2.05 and x=-0.93
-    assert all(state[i] == L.FREE for i in range(-9, 20))
+    assert state[20] == OCCUPIED and state[-10] == OCCUPIED  # hits at x=2.05 and x=-0.93
+    assert all(state[i] == FREE for i in range(-9, 20))
     # A beam beyond max_range marks free space up to max_range and no hit.
-    short = L.occupancy_grid(img, cell_m=0.1, max_range_m=1.0, hit_margin_m=0.0)
+    short = occupancy_grid(img, cell_m=0.1, max_range_m=1.0, hit_margin_m=0.0)
     s_row = short.state[:, 0, 0]
     s_ix = np.arange(short.lo[0], short.lo[0] + s_row.size)
-    assert s_ix[s_row == L.OCCUPIED].tolist() == [-10]  # only the 0.93 m hit
-    assert s_ix[(s_row == L.FREE) & (s_ix >= 0)].tolist() == list(range(10))  # x < 1.0
+    assert s_ix[s_row == OCCUPIED].tolist() == [-10]  # only the 0.93 m hit
+    assert s_ix[(s_row == FREE) & (s_ix >= 0)].tolist() == list(range(10))  # x < 1.0
     # A hit margin keeps the last stretch before the hit unmarked.
-    margin = L.occupancy_grid(img, cell_m=0.1, max_range_m=40.0, hit_margin_m=0.25)
+    margin = occupancy_grid(img, cell_m=0.1, max_range_m=40.0, hit_margin_m=0.25)
     m_row = margin.state[:, 0, 0]
-    assert m_row[17 - margin.lo[0]] == L.FREE  # free for x < 2.05 - 0.25 = 1.8
-    assert (m_row[[18 - margin.lo[0], 19 - margin.lo[0]]] == L.UNKNOWN).all()
-    assert m_row[20 - margin.lo[0]] == L.OCCUPIED
+    assert m_row[17 - margin.lo[0]] == FREE  # free for x < 2.05 - 0.25 = 1.8
+    assert (m_row[[18 - margin.lo[0], 19 - margin.lo[0]]] == UNKNOWN).all()
+    assert m_row[20 - margin.lo[0]] == OCCUPIED
 
 
 def test_turning_angles_and_tangent_splits_at_a_corner():
     step = 0.1
     leg = np.arange(0.0, 3.0, step)
     pts = np.concatenate([np.c_[leg, 0 * leg], np.c_[3.0 + 0 * leg, leg]])  # 90 deg corner
-    ang = L.turning_angles(pts, interval_m=1.0)
+    ang = turning_angles(pts, interval_m=1.0)
     k = int(np.argmax(ang))
     assert abs(pts[k, 0] - 3.0) < 0.15 and abs(pts[k, 1]) < 0.15
     assert 80.0 < ang[k] <= 95.0
     assert np.all(ang[:5] == 0.0) and np.all(ang[-5:] == 0.0)  # less than half an interval
-    splits = L.tangent_splits(ang, 80.0)
+    splits = tangent_splits(ang, 80.0)
     assert splits.tolist() == [k]
-    assert L.tangent_splits(ang, 120.0).size == 0
+    assert tangent_splits(ang, 120.0).size == 0
     # A closed square: four corners found even where the chain starts and ends.
     side = np.arange(0.0, 2.0, step)
     sq = np.concatenate(
@@ -186,7 +195,7 @@ def test_turning_angles_and_tangent_splits_at_a_corner():
          np.c_[0 * side, 2 - side]]
     )
     sq = np.roll(sq, 7, axis=0)
-    corners = L.tangent_splits(L.turning_angles(sq, 0.6, closed=True), 60.0)
+    corners = tangent_splits(turning_angles(sq, 0.6, closed=True), 60.0)
     assert len(corners) == 4
     got = {tuple(np.round(sq[c])) for c in corners}
     assert got == {(0.0, 0.0), (2.0, 0.0), (2.0, 2.0), (0.0, 2.0)}
@@ -197,7 +206,7 @@ def test_fit_line_svd_direction_and_gated_ends():
     t = np.linspace(0.0, 4.0, 81)
     pts = np.c_[1.0 + t, 2.0 + 0.5 * t, np.full_like(t, 1.2)] + rng.normal(0, 0.01, (81, 3))
     far = np.array([[6.0, 6.0, 1.2]])  # beyond the end and 1.34 m off the line
-    p0, p1, n_in, dmax = L.fit_line(np.vstack([pts, far]), end_distance_m=0.15)
+    p0, p1, n_in, dmax = fit_line(np.vstack([pts, far]), end_distance_m=0.15)
     ends = sorted([p0, p1], key=lambda p: p[0])
     np.testing.assert_allclose(ends[0], [1.0, 2.0, 1.2], atol=0.1)  # SVD fit is not robust:
     np.testing.assert_allclose(ends[1], [5.0, 4.0, 1.2], atol=0.1)  # the outlier tilts it
@@ -213,7 +222,7 @@ def test_border_chains_order_cells_and_close_loops():
     rng = np.random.default_rng(0)
     perm = rng.permutation(len(cells))
     ix, iy = cells[perm, 0], cells[perm, 1]
-    chains = L.border_chains(ix, iy, min_cells=3, link_cells=1)
+    chains = border_chains(ix, iy, min_cells=3, link_cells=1)
     assert sorted(len(c) for c in chains) == [8, len(ring)]
     for c in chains:
         steps = np.abs(np.diff(np.c_[ix[c], iy[c]], axis=0)).max(axis=1)

@@ -93,7 +93,7 @@ def room_mesh(symmetric: bool = False):
     """A closed room as a labelled :class:`SceneMesh` (part ids: 0 floor, 1 ceiling, 2.. walls,
     then furniture). ``symmetric``: a plain 10 x 4 x 2.5 m box. Otherwise an L-shaped room with a
     chamfered corner, two boxes at odd yaws and a slanted board (no 90-degree symmetry)."""
-    from forestmap_assets.sim.forest import (
+    from forestmap_assets.sim.scene_mesh import (
         KIND_GROUND,
         KIND_STEM,
         KIND_UNDERSTOREY,

@@ -52,7 +52,7 @@ def template() -> Path:
     """Build (once per session) and return the materialised template folder."""
     if "root" in _TEMPLATE:
         return _TEMPLATE["root"]
-    from forestmap_assets.runner import run_campaign
+    from forestmap_assets.orchestration.runner import run_campaign
     from forestmap_assets.sim import simulate_campaign
 
     base = Path(tempfile.mkdtemp(prefix="forestmap-orch-"))
@@ -125,7 +125,8 @@ def campaign(root: Path) -> Campaign:
 
 def data_versions(defs, root: Path) -> dict[tuple[str, str | None], str]:
     """Current data version of every (stage, partition) of the campaign."""
-    from forestmap_assets.runner import _resolver, campaign_stages, get_instance
+    from forestmap_assets.orchestration.instance import get_instance
+    from forestmap_assets.orchestration.status import _resolver, campaign_stages
 
     c = load_campaign(root)
     resolver = _resolver(defs, get_instance())
@@ -138,7 +139,7 @@ def data_versions(defs, root: Path) -> dict[tuple[str, str | None], str]:
 
 def inputs_of(defs, root: Path, stage: str, part: str | None) -> list[tuple[str, str | None]]:
     """The (stage, partition) inputs of one asset partition."""
-    from forestmap_assets.runner import campaign_stages, stage_parents
+    from forestmap_assets.orchestration.status import campaign_stages, stage_parents
 
     c = load_campaign(root)
     granularity = dict(campaign_stages(defs, c))

@@ -12,7 +12,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.features.range_image import RangeImage, spherical_to_xyz
-from forestmap_assets.io.readers import SCAN_EXTENSIONS, ScanReadError, read_scan
+from forestmap_assets.io.readers import SCAN_EXTENSIONS, read_scan
+from forestmap_assets.io.readers_common import ScanReadError
 from forestmap_assets.io.writers import atomic_write, scan_points, write_scan
 
 ORGANISED = ("npz", "e57")

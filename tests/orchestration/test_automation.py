@@ -26,11 +26,12 @@ from forestmap_assets.orchestration.automation import (
     nightly_reprocessing,
     process_campaign_job,
 )
+from forestmap_assets.orchestration.instance import get_instance
+from forestmap_assets.orchestration.runner import run_campaign
 from forestmap_assets.orchestration.workspace import (
     discover_campaign_folders,
     load_campaigns,
 )
-from forestmap_assets.runner import get_instance, run_campaign
 
 
 def _defs():

@@ -20,8 +20,9 @@ from helpers.orchestration import (
 )
 
 from forestmap_assets.assets.common import CAMPAIGN_STAGES, PIPELINE, SCAN_STAGES
+from forestmap_assets.orchestration.instance import get_instance
+from forestmap_assets.orchestration.runner import run_campaign
 from forestmap_assets.orchestration.workspace import build_definitions
-from forestmap_assets.runner import get_instance, run_campaign
 
 ALL = [s for s, _ in PIPELINE]
 

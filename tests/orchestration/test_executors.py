@@ -10,7 +10,8 @@ from dagster import DagsterEventType
 from helpers.campaign_files import write_campaign
 
 from forestmap_assets.io.store import read_table
-from forestmap_assets.runner import get_instance, run_campaign
+from forestmap_assets.orchestration.instance import get_instance
+from forestmap_assets.orchestration.runner import run_campaign
 
 
 def _events(instance, run_id, kind):

@@ -6,8 +6,8 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.io.campaign import load_campaign
+from forestmap_assets.orchestration.runner import run_campaign
 from forestmap_assets.outputs.exports import write_exports
-from forestmap_assets.runner import run_campaign
 from forestmap_assets.sim import simulate_campaign
 from forestmap_assets.sim.evaluate import evaluate_campaign
 

@@ -10,7 +10,9 @@ from forestmap_assets.core.features.range_image import RangeImage, levelling_rot
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.io.store import read_table
 from forestmap_assets.orchestration.definitions import build_definitions
-from forestmap_assets.runner import get_instance, run_campaign, stage_states
+from forestmap_assets.orchestration.instance import get_instance
+from forestmap_assets.orchestration.runner import run_campaign
+from forestmap_assets.orchestration.status import stage_states
 
 
 def _stored(home, campaign, scan):

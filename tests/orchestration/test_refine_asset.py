@@ -11,14 +11,15 @@ from dagster import materialize
 
 from forestmap_assets.assets.common import asset_key, code_version
 from forestmap_assets.core.geometry import wrap_deg
-from forestmap_assets.core.registration_.pair_registrations import (
+from forestmap_assets.core.registration.pair_registrations import (
     EXTRA_COLUMNS,
     REGISTRATION_COLUMNS,
 )
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.io.store import default_store_url, write_bundle_atomic
 from forestmap_assets.orchestration.definitions import build_definitions
-from forestmap_assets.runner import QUIET, get_instance, sync_partitions
+from forestmap_assets.orchestration.instance import get_instance, sync_partitions
+from forestmap_assets.orchestration.runner import QUIET
 from forestmap_assets.sim import simulate_campaign
 
 

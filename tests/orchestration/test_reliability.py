@@ -18,11 +18,12 @@ from helpers.orchestration import materialised_since
 from forestmap_assets.assets.common import asset_key
 from forestmap_assets.io import store
 from forestmap_assets.io.campaign import load_campaign
-from forestmap_assets.runner import campaign_lock, get_instance, run_campaign
+from forestmap_assets.orchestration.instance import get_instance
+from forestmap_assets.orchestration.runner import campaign_lock, run_campaign
 
 RUN = (
     "import sys, warnings; warnings.filterwarnings('ignore')\n"
-    "from forestmap_assets.runner import run_campaign\n"
+    "from forestmap_assets.orchestration.runner import run_campaign\n"
     "if __name__ == '__main__':\n"
     "    s = run_campaign(sys.argv[1], stages=['segments'], progress=lambda m: print(m, flush=True))\n"
     "    sys.exit(1 if s.failures else 0)\n"

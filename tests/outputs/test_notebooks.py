@@ -21,7 +21,7 @@ NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 
 @pytest.fixture(scope="module")
 def materialised(tmp_path_factory):
-    from forestmap_assets.runner import run_campaign
+    from forestmap_assets.orchestration.runner import run_campaign
     from forestmap_assets.sim import simulate_campaign
 
     home = tmp_path_factory.mktemp("nb_home")

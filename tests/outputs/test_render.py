@@ -7,10 +7,26 @@ import pandas as pd
 import pytest
 from matplotlib.image import imread
 
-from forestmap_assets import figures as F
 from forestmap_assets.core.features.elevation import ElevationGrid
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.outputs import render
+from forestmap_assets.outputs.figures.common import png_bytes
+from forestmap_assets.outputs.figures.elevation import (
+    elevation_figure,
+    ground_limits,
+    remove_spikes,
+)
+from forestmap_assets.outputs.figures.range_images import (
+    circle_mask,
+    cylinder_outlines,
+    range_image_panels,
+    range_mask_figure,
+)
+from forestmap_assets.outputs.figures.registration import (
+    cloud_weights,
+    score_cloud_evolution,
+    score_snapshots,
+)
 
 
 def sloped_grid(n: int = 200, cell: float = 0.1, spike: bool = True) -> ElevationGrid:
@@ -90,12 +106,12 @@ def test_surface_has_two_triangles_per_complete_cell():
 @pytest.mark.slow
 def test_remove_spikes_drops_branch_hits_and_keeps_the_slope():
     grid = sloped_grid()
-    clean = F.remove_spikes(grid, spike_m=1.0)
+    clean = remove_spikes(grid, spike_m=1.0)
     assert np.isnan(clean.z[100:104, 100:104]).all()
     keep = np.isfinite(grid.z) & ~np.isnan(clean.z)
     assert keep.sum() == np.isfinite(grid.z).sum() - 16
-    assert F.remove_spikes(grid, spike_m=None) is grid
-    lo, hi = F.ground_limits(grid)
+    assert remove_spikes(grid, spike_m=None) is grid
+    lo, hi = ground_limits(grid)
     assert (
         hi < 0.0
     )  # the spike (4.5 m) does not stretch the colour scale; the ground tops at -0.5 m
@@ -164,7 +180,7 @@ def test_circle_mask_marks_the_angular_width_of_each_circle():
             "radius_m": [r, r],
         }
     )
-    mask = F.circle_mask(image, circles)
+    mask = circle_mask(image, circles)
     assert mask.sum() == mask[5].sum()  # the invalid circle is not drawn
     cols = np.flatnonzero(mask[5])
     half = np.degrees(np.arcsin(r / d))
@@ -186,7 +202,7 @@ def test_cylinder_outline_follows_the_axis_in_azimuth_and_elevation():
             "radius_m": [0.2],
         }
     )
-    (poly,) = F.cylinder_outlines(image, cyl)
+    (poly,) = cylinder_outlines(image, cyl)
     assert poly[:, 0].min() == pytest.approx(90 - np.degrees(np.arcsin(0.2 / 4.0)), abs=1e-6)
     assert poly[:, 0].max() == pytest.approx(90 + np.degrees(np.arcsin(0.2 / 4.0)), abs=1e-6)
     assert poly[:, 1].max() == pytest.approx(np.degrees(np.arctan2(1, 4)), abs=1e-6)
@@ -194,7 +210,7 @@ def test_cylinder_outline_follows_the_axis_in_azimuth_and_elevation():
 
 def test_range_image_panels_and_score_cloud_figures():
     image = wall_image()
-    fig = F.range_image_panels(image, title="t")
+    fig = range_image_panels(image, title="t")
     assert len([a for a in fig.axes if a.get_label() != "<colorbar>"]) == 1
     levels = pd.DataFrame(
         {
@@ -212,11 +228,11 @@ def test_range_image_panels_and_score_cloud_figures():
             "bound": [1.0, 0.5, 0.0, 0.0, 0.0],
         }
     )
-    assert F.score_snapshots(levels) == [0, 1]
-    w = F.cloud_weights(levels["score"].to_numpy(), floor=-20.0)
+    assert score_snapshots(levels) == [0, 1]
+    w = cloud_weights(levels["score"].to_numpy(), floor=-20.0)
     assert w[1] > 0 and w[1] < 1e-2 * w[0]  # an only-bounded cell keeps a token weight
     reg = {"scan": "S", "reference": "T", "dx": 0.4, "dy": 0.25, "sd_x": 0.1, "sd_y": 0.05}
-    fig = F.score_cloud_evolution(
+    fig = score_cloud_evolution(
         levels, reg, floor=-20.0, a_priori=(0, 0, 0, 0), half_widths=(1, 1, 0.5, 4)
     )
     assert sum(ax.get_visible() for ax in fig.axes) >= 3
@@ -226,19 +242,19 @@ def test_elevation_figure_labels_its_colour_scale_and_crops_to_the_plot():
     grid = sloped_grid()
     _, poses = scene()
     trees = pd.DataFrame({"x": [2.0, -3.0], "y": [1.0, 2.0], "dbh_m": [0.4, np.nan]})
-    fig = F.elevation_figure(grid, poses, trees, margin_m=2.0)
+    fig = elevation_figure(grid, poses, trees, margin_m=2.0)
     labels = [ax.get_ylabel() for ax in fig.axes]
     assert any("elevation" in s and "(m)" in s for s in labels)
     main = fig.axes[0]
     assert main.get_xlim()[0] >= -3.0 - 2.0 - 0.1 and main.get_xlim()[1] <= 5.0 + 2.0 + 0.1
-    assert F.png_bytes(fig)[:4] == b"\x89PNG"
+    assert png_bytes(fig)[:4] == b"\x89PNG"
 
 
 def test_range_mask_figure_for_the_dagster_ui():
     image = wall_image()
     mask = np.zeros(image.shape, bool)
     mask[5:9, 100:110] = True
-    fig = F.range_mask_figure(image, mask, "segments, scan T", label="segments")
+    fig = range_mask_figure(image, mask, "segments, scan T", label="segments")
     assert fig.axes[0].get_title() == "segments, scan T (red: segments, 40 pixels)"
     assert fig.axes[0].get_xlabel() == "azimuth (deg)"
-    assert F.png_bytes(fig, dpi=80)[:4] == b"\x89PNG"
+    assert png_bytes(fig, dpi=80)[:4] == b"\x89PNG"

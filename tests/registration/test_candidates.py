@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from forestmap_assets.core.registration_.candidates import CANDIDATE_COLUMNS, candidate_pairs
+from forestmap_assets.core.registration.candidates import CANDIDATE_COLUMNS, candidate_pairs
 
 
 def test_explicit_pairs_centre_box_on_prior():

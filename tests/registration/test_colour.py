@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from forestmap_assets.core.features.range_image import RangeImage
-from forestmap_assets.core.registration_.colour import (
+from forestmap_assets.core.registration.colour import (
     hsl_to_rgb,
     hue_features,
     hue_filter,
@@ -19,7 +19,7 @@ from forestmap_assets.core.registration_.colour import (
     rgb_to_hue,
     table_hue,
 )
-from forestmap_assets.sim.forest import KIND_FOLIAGE, KIND_GROUND, KIND_STEM
+from forestmap_assets.sim.scene_mesh import KIND_FOLIAGE, KIND_GROUND, KIND_STEM
 
 
 def test_table_5_1_hues_grey_zero_and_red_at_an_end():

@@ -8,19 +8,21 @@ import pytest
 from helpers.colour_scenes import mesh_samples, random_rotation, room_mesh
 from scipy import special
 
-from forestmap_assets.core.fourier import (
+from forestmap_assets.core.registration.fourier_coarse import (
+    coarse_register,
+    prepare_cloud,
+    registration_error,
+)
+from forestmap_assets.core.registration.fourier_rotation import (
     brute_force_rotation,
     cell_solid_angles,
-    coarse_register,
     egi,
     euler_zyz,
     heading_correlation,
     heading_peaks,
     normal_angles,
     peak_rotation,
-    prepare_cloud,
     quadrature_weights,
-    registration_error,
     rotation_angle_deg,
     rotation_by_correlation,
     sh_coefficients,
@@ -29,10 +31,10 @@ from forestmap_assets.core.fourier import (
     so3_correlation,
     so3_grid,
     sphere_grid,
-    translation_by_correlation,
     wigner_d,
 )
-from forestmap_assets.core.hicp import pose4_to_matrix
+from forestmap_assets.core.registration.fourier_translation import translation_by_correlation
+from forestmap_assets.core.registration.hicp import pose4_to_matrix
 
 
 @pytest.fixture(scope="module")
@@ -232,8 +234,8 @@ def test_occupancy_scan_heading_mode_and_argument_checks(room_pair):
 def test_coarse_candidates_centre_no_prior_pairs_on_the_fourier_pose(room_pair):
     import pandas as pd
 
-    from forestmap_assets.core.fourier import coarse_candidates
-    from forestmap_assets.core.registration_.candidates import candidate_pairs
+    from forestmap_assets.core.registration.candidates import candidate_pairs
+    from forestmap_assets.core.registration.fourier_coarse import coarse_candidates
 
     a, b, r_true, t_true = room_pair
     clouds = {"T": a.image.xyz[a.image.valid], "S": b.image.xyz[b.image.valid]}

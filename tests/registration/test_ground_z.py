@@ -7,7 +7,7 @@ import pandas as pd
 
 from forestmap_assets.core.features.elevation import elevation_grid
 from forestmap_assets.core.geometry import transform_points
-from forestmap_assets.core.registration_.ground_z import ground_dz
+from forestmap_assets.core.registration.ground_z import ground_dz
 from forestmap_assets.params import ElevationParams
 
 

@@ -16,16 +16,18 @@ from helpers.colour_scenes import (
 )
 from scipy.spatial import cKDTree
 
-from forestmap_assets.core.hicp import (
+from forestmap_assets.core.registration.hicp import (
     Embedding,
     default_radius,
     hicp,
     icp,
+    pose4_to_matrix,
+    rigid_transform,
+)
+from forestmap_assets.core.registration.icp_uncertainty import (
     icp_covariance,
     merged_normal_quality,
-    pose4_to_matrix,
     pose_sd,
-    rigid_transform,
 )
 
 D6_T = np.array([1.014969, 2.00582, 0.706715])  # Table 5.2's translation
@@ -228,8 +230,8 @@ def _scene_views(seed=0):
 
 @pytest.mark.parametrize("colour", [True, False], ids=["hicp", "point-to-plane"])
 def test_refine_pair_improves_branch_and_bound_pose_within_its_box(colour):
-    from forestmap_assets.core.registration_.refine import refine_pair
-    from forestmap_assets.params_men import RefineSettings
+    from forestmap_assets.core.registration.refine import refine_pair
+    from forestmap_assets.params.men import RefineSettings
 
     scan, h_scan, ref, h_ref, truth = _scene_views()
     settings = RefineSettings(data_voxel_m=0.1, model_voxel_m=0.0, radius_m=0.3, z_band_m=(-20.0, 20.0),

@@ -12,7 +12,7 @@ from scipy.sparse.csgraph import connected_components
 from forestmap_assets.access import load_asset
 from forestmap_assets.core.geometry import relative_pose, wrap_deg
 from forestmap_assets.core.mapping.link_selection import select_links
-from forestmap_assets.runner import run_campaign
+from forestmap_assets.orchestration.runner import run_campaign
 from forestmap_assets.sim import simulate_campaign
 
 # scans in a row 7 m apart: neighbours share many stems, the ends (21 m) few

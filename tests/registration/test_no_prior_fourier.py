@@ -9,8 +9,8 @@ from helpers.orchestration import edit_manifest
 
 from forestmap_assets.access import load_asset
 from forestmap_assets.io.campaign import load_campaign
+from forestmap_assets.orchestration.runner import run_campaign
 from forestmap_assets.outputs.exports import write_exports
-from forestmap_assets.runner import run_campaign
 from forestmap_assets.sim import simulate_campaign
 from forestmap_assets.sim.evaluate import evaluate_campaign
 

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.registration_.pair_registrations import (
+from forestmap_assets.core.registration.pair_registrations import (
     observation_sigmas,
     tempered_cloud_sigma,
 )
@@ -78,9 +78,9 @@ def test_ground_dz_gate_uses_the_feature_dz_sd(monkeypatch):
     feature dz's own sd (its cloud sd combined with ``feature_z_sd_m``): a tight cell cloud
     (lattice bound) no longer refuses a ground dz 0.3 m from a feature dz that near-vertical
     stems barely fix; a ground dz 1 m away is still refused."""
-    from forestmap_assets.core.registration import RegistrationResult
-    from forestmap_assets.core.registration_ import pair_registrations as pr
-    from forestmap_assets.core.registration_.score import ScoreModel
+    from forestmap_assets.core.registration import pair_registrations as pr
+    from forestmap_assets.core.registration.register import RegistrationResult
+    from forestmap_assets.core.registration.score import ScoreModel
     from forestmap_assets.params import RegistrationParams
 
     params = RegistrationParams(min_support_m=0.0, max_rival_ratio=None)

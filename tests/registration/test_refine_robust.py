@@ -9,7 +9,8 @@ from scipy.spatial import cKDTree
 
 from forestmap_assets.core.cloud import pca_normals
 from forestmap_assets.core.geometry import wrap_deg
-from forestmap_assets.core.hicp import point_to_plane_4dof, pose4_to_matrix
+from forestmap_assets.core.registration.hicp import pose4_to_matrix
+from forestmap_assets.core.registration.point_to_plane import point_to_plane_4dof
 
 
 def _scene(rng, n=3000):

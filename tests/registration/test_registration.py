@@ -5,15 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from forestmap_assets.core.registration import (
-    SearchLattice,
-    _KdEvaluator,
-    exhaustive_search,
-    register_pair,
-)
-from forestmap_assets.core.registration_.score import ScoreModel
-from forestmap_assets.core.registration_.submaps import build_submap, submap_points
-from forestmap_assets.core.score_field import ReferenceField
+from forestmap_assets.core.registration.branch_and_bound import KdEvaluator, exhaustive_search
+from forestmap_assets.core.registration.register import register_pair
+from forestmap_assets.core.registration.score import ScoreModel
+from forestmap_assets.core.registration.score_field import ReferenceField
+from forestmap_assets.core.registration.search_lattice import SearchLattice
+from forestmap_assets.core.registration.submaps import build_submap, submap_points
 from forestmap_assets.params import RegistrationParams
 from forestmap_assets.sim.stem_layouts import stem_pair
 
@@ -38,7 +35,7 @@ def test_bounds_dominate_scores_inside_cells():
     scan = ref[:150] + rng.normal(0, 0.02, (150, 3))
     model = ScoreModel()
     field = ReferenceField(ref, model)
-    kd = _KdEvaluator(ref, model)
+    kd = KdEvaluator(ref, model)
     d_xy = np.hypot(scan[:, 0], scan[:, 1])
     for _ in range(12):
         c = np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 0.02)]
@@ -185,7 +182,7 @@ def test_first_hypotheses_change_speed_not_result():
 
 def test_chunked_evaluation_gives_the_same_search(monkeypatch):
     """Memory-bounded chunks of live points (and a best raised chunk by chunk) change nothing."""
-    import forestmap_assets.core.registration as reg
+    import forestmap_assets.core.registration.fast_search as reg
 
     pa, pb, truth = _stem_points(3, n_trees=20, half_extent_m=7.0, max_range_m=8.0)
     args = (pb, pa, truth + np.array([0.3, 0.2, 0.1, 2.0]), (0.6, 0.6, 0.3, 5.0),
@@ -198,7 +195,7 @@ def test_chunked_evaluation_gives_the_same_search(monkeypatch):
 
 
 def test_stem_voting_finds_the_alignment():
-    from forestmap_assets.core.registration_.stem_voting import vote_alignments
+    from forestmap_assets.core.registration.stem_voting import vote_alignments
 
     pa, pb, truth = _stem_points(5)
     hyp = vote_alignments(pb, pa, (0, 0, 0, 0), (6.0, 6.0, 1.0, 180.0))
@@ -240,7 +237,7 @@ def test_field_gives_exact_nearest_distances_on_voxel_faces():
     ref = rng.uniform(-2, 2, (400, 3))
     model = ScoreModel()
     field = ReferenceField(ref, model)
-    kd = _KdEvaluator(ref, model)
+    kd = KdEvaluator(ref, model)
     lo = field.f_origin + field.f_s * np.floor((ref.min(0) - field.f_origin) / field.f_s)
     grid = lo + field.f_s * rng.integers(0, 40, (500, 3))  # voxel corners
     face = grid + np.array([0.5, 0.0, 0.5]) * field.f_s  # and faces
@@ -262,7 +259,7 @@ def test_field_gives_exact_nearest_distances_on_voxel_faces():
 
 
 def test_reference_field_is_reused_for_the_same_reference():
-    from forestmap_assets.core.registration import reference_field
+    from forestmap_assets.core.registration.fast_search import reference_field
 
     rng = np.random.default_rng(4)
     ref = rng.uniform(-2, 2, (200, 3))
@@ -284,7 +281,7 @@ def test_asymmetric_box_and_parent_terms_bound_the_scores():
     scan = ref[:150] + rng.normal(0, 0.02, (150, 3))
     model = ScoreModel()
     field = ReferenceField(ref, model)
-    kd = _KdEvaluator(ref, model)
+    kd = KdEvaluator(ref, model)
     n = len(scan)
     d_xy = np.hypot(scan[:, 0], scan[:, 1])
     root_off, root_idx = np.array([0, n], np.int64), np.arange(n, dtype=np.int32)
@@ -315,7 +312,7 @@ def test_lattice_search_grows_the_cloud_and_keeps_the_maximum():
     """bound='lattice': the lattice maximum of exhaustive search, with the heading halved by
     the thesis rule or earlier (``heading_split_scale``); the final cloud holds every lattice
     cell connected to the peak (80 neighbours) that scores within ``cloud_margin`` of it."""
-    from forestmap_assets.core.registration import lattice_components
+    from forestmap_assets.core.registration.cell_clouds import lattice_components
 
     rng = np.random.default_rng(1)
     scan, ref = _small_problem(rng, "plain")

@@ -11,13 +11,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.circles import fit_circle_models
+from forestmap_assets.core.features.circle_models import fit_circle_models
 from forestmap_assets.core.features.cylinders import assemble_cylinders
 from forestmap_assets.core.features.segments import segment_scan_lines
 from forestmap_assets.core.geometry import relative_pose
-from forestmap_assets.core.registration import register_pair
-from forestmap_assets.core.registration_.pair_registrations import judge
-from forestmap_assets.core.registration_.submaps import build_submap, submap_points
+from forestmap_assets.core.registration.pair_registrations import judge
+from forestmap_assets.core.registration.register import register_pair
+from forestmap_assets.core.registration.submaps import build_submap, submap_points
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.io.readers import read_scan
 from forestmap_assets.params import RegistrationParams

@@ -12,29 +12,25 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from forestmap_assets.core.features.wall_lines import extract_line_segments
 from forestmap_assets.core.geometry import relative_pose
-from forestmap_assets.core.lines import extract_line_segments
 from forestmap_assets.core.mapping.chained_map import chained_map
 from forestmap_assets.core.mapping.chaining import OBSERVATION_COLUMNS
 from forestmap_assets.core.mapping.link_selection import check_link_hypothesis
-from forestmap_assets.core.registration import register_pair
-from forestmap_assets.core.registration_.pair_checks import (
+from forestmap_assets.core.registration.pair_checks import (
     assess_pair,
     constraint_support,
     feature_directions,
-    judge_in_box,
     register_in_box,
     search_box,
 )
-from forestmap_assets.core.registration_.submaps import build_submap
+from forestmap_assets.core.registration.pair_registrations import judge_in_box
+from forestmap_assets.core.registration.register import register_pair
+from forestmap_assets.core.registration.submaps import build_submap
 from forestmap_assets.params import resolve_params
+from forestmap_assets.sim.corridor import corridor_scene
 from forestmap_assets.sim.site_eval import LINE_EXTRA, line_recall, scan_site
-from forestmap_assets.sim.sites import (
-    corridor_scene,
-    lines_in_frame,
-    points_in_frame,
-    visible_line_samples,
-)
+from forestmap_assets.sim.site_truth import lines_in_frame, points_in_frame, visible_line_samples
 
 INDOOR = resolve_params("indoor")
 REG = INDOOR.registration  # the thesis's indoor search: +-5 m, +-0.625 m, +-30 deg, 2 cm cells
@@ -310,7 +306,7 @@ def test_chained_map_sums_variances_and_reports_the_unused_loop_closure():
 def test_coarse_to_fine_history_keeps_a_late_leader_as_a_secondary_hypothesis():
     """Th. Figs 5.8-5.9: the best cell jumps between hypotheses at coarse levels; a competitor
     that still leads with cells of <= 0.3 m is a secondary hypothesis and the result ambiguous."""
-    from forestmap_assets.core.registration_.pair_checks import assess_history, history_hypotheses
+    from forestmap_assets.core.registration.pair_checks import assess_history, history_hypotheses
 
     def level(k, cell, cells):
         return pd.DataFrame([(k, cell, x, y, 0.0, 0.0, s) for x, y, s in cells],
@@ -342,8 +338,8 @@ def test_pipeline_registrations_carry_the_coarse_to_fine_hypothesis():
     """The one-wall pair 87 through register_candidates with the indoor preset: the sliding
     alignment led late in the search, so the hypotheses table holds it and the pair is not
     admitted."""
-    from forestmap_assets.core.registration_.candidates import candidate_pairs
-    from forestmap_assets.core.registration_.pair_registrations import register_candidates
+    from forestmap_assets.core.registration.candidates import candidate_pairs
+    from forestmap_assets.core.registration.pair_registrations import register_candidates
 
     a = _submap((0, 0), lines=[(-6, 1.2, 6, 1.2)], seed=1)
     b = _submap((8, 0), lines=[(5, -1.2, 9, -1.2)], seed=2)

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from forestmap_assets.core.registration_.submaps import build_submap, sample_segments, submap_reach
+from forestmap_assets.core.registration.submaps import build_submap, sample_segments, submap_reach
 
 
 def _cyl(rows):

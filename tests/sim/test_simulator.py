@@ -12,13 +12,7 @@ import yaml
 
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.sim import ScanPose, VirtualScanner, make_forest, simulate_campaign
-from forestmap_assets.sim.forest import (
-    KIND_GROUND,
-    KIND_STEM,
-    SceneMesh,
-    box_mesh,
-    tube_mesh,
-)
+from forestmap_assets.sim.scene_mesh import KIND_GROUND, KIND_STEM, SceneMesh, box_mesh, tube_mesh
 
 SMALL = dict(scans=3, trees=20, plot_size=30.0, seed=3, resolution="quarter")
 NOISE_FREE = {"range_sigma_m": 0.0}

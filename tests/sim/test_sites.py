@@ -13,9 +13,12 @@ import yaml
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.sim.campaign import cart_tilt, scan_ids, simulate_campaign, site_pairs
-from forestmap_assets.sim.forest import KIND_GROUND, make_ground
+from forestmap_assets.sim.corridor import corridor_scene, make_corridor
+from forestmap_assets.sim.ground import make_ground
+from forestmap_assets.sim.parking_lot import make_parking_lot
 from forestmap_assets.sim.scanner import ScanPose, VirtualScanner
-from forestmap_assets.sim.sites import (
+from forestmap_assets.sim.scene_mesh import KIND_GROUND
+from forestmap_assets.sim.site_meshes import (
     KIND_CEILING,
     KIND_PERSON,
     KIND_PILLAR,
@@ -23,9 +26,6 @@ from forestmap_assets.sim.sites import (
     KIND_WALL,
     PILLAR_RADIUS_M,
     Wall,
-    corridor_scene,
-    make_corridor,
-    make_parking_lot,
     walls_mesh,
 )
 
@@ -76,7 +76,7 @@ def test_wall_openings_keep_the_top_edge_and_open_the_wall():
     assert any(p[0] == 3.5 and p[1] == 5.0 and p[2] == 0.0 and p[3] == 0.9 for p in pieces)
     assert any(p[0] == 3.5 and p[1] == 5.0 and p[2] == 2.0 and p[3] == 2.3 for p in pieces)
     v, f, _ = walls_mesh([w])
-    from forestmap_assets.sim.forest import SceneMesh
+    from forestmap_assets.sim.scene_mesh import SceneMesh
 
     mesh = SceneMesh(v, f, np.full(len(f), KIND_WALL, np.uint8), np.full(len(f), -1, np.int32),
                      np.zeros(len(f), np.int32))

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.circles import final_circles, fit_circle_models
+from forestmap_assets.core.features.circle_models import final_circles, fit_circle_models
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.core.features.segments import segment_scan_lines
 from forestmap_assets.params import CylinderParams, Params

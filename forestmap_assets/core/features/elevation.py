@@ -7,16 +7,15 @@
   (rotation by the heading, xy translation, z offset) and combined by the same min/max rule.
 * :func:`render_grid`: the coarse 0.6 m rendering grid, each cell the mean of the 5 lowest
   values among its fine cells (Figs 6.12-6.13).
-* :func:`save_elevation_npz`, :func:`load_elevation_npz`, :func:`elevation_png`: artefacts.
+* :func:`elevation_to_table`, :func:`elevation_from_table`: the grid as a stored table.
+The ``elevation.npz`` and ``elevation.png`` files are written by
+:mod:`forestmap_assets.outputs.elevation_files`.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -26,6 +25,8 @@ from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.params import ElevationParams
 
 Mode = Literal["lowest", "highest"]
+
+
 ELEVATION_COLUMNS = ["ix", "iy", "z", "n"]
 
 
@@ -187,104 +188,6 @@ def render_grid(grid: ElevationGrid, cell_m: float = 0.6, n_lowest: int = 5) -> 
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(counts > 0, sums / counts, np.nan)
     return ElevationGrid(out.reshape(ncy, ncx), grid.x0, grid.y0, float(cell_m), grid.mode)
-
-
-def _atomic_write(path: str | os.PathLike, write) -> Path:
-    """Call ``write(file)`` on a temporary file next to ``path``, then ``os.replace`` it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
-
-
-def save_elevation_npz(path: str | os.PathLike, grid: ElevationGrid) -> Path:
-    """Write ``z, x0, y0, cell_m, mode`` to an ``.npz`` file atomically."""
-    return _atomic_write(
-        path,
-        lambda fh: np.savez_compressed(
-            fh,
-            z=grid.z,
-            x0=np.float64(grid.x0),
-            y0=np.float64(grid.y0),
-            cell_m=np.float64(grid.cell_m),
-            mode=np.str_(grid.mode),
-        ),
-    )
-
-
-def load_elevation_npz(path: str | os.PathLike) -> ElevationGrid:
-    """Read a grid written by :func:`save_elevation_npz`."""
-    with np.load(path, allow_pickle=False) as f:
-        return ElevationGrid(
-            z=f["z"].astype(np.float64),
-            x0=float(f["x0"]),
-            y0=float(f["y0"]),
-            cell_m=float(f["cell_m"]),
-            mode=str(f["mode"]),  # type: ignore[arg-type]
-        )
-
-
-def _xy(table) -> np.ndarray:
-    if isinstance(table, pd.DataFrame):
-        return table[["x", "y"]].to_numpy(dtype=np.float64)
-    return np.asarray(table, dtype=np.float64).reshape(-1, np.shape(table)[-1])[:, :2]
-
-
-def elevation_png(
-    path: str | os.PathLike,
-    grid: ElevationGrid,
-    title: str,
-    scan_positions: pd.DataFrame | np.ndarray | None = None,
-    trees: pd.DataFrame | np.ndarray | None = None,
-    *,
-    dpi: int = 120,
-) -> Path:
-    """Picture of an elevation grid (spec 9, Figs 6.4, 6.7, 6.11): colour = elevation with a
-    labelled colour bar in metres, axes in metres, equal aspect; optional scan positions
-    (table with ``x, y`` and optional ``scan`` labels, or an (n, 2+) array) and tree markers
-    (``x, y``). Written atomically (temporary file + ``os.replace``)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(7.0, 6.0))
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
-    if grid.z.size:
-        im = ax.imshow(
-            np.ma.masked_invalid(grid.z),
-            origin="lower",
-            extent=grid.extent,
-            cmap="terrain",
-            interpolation="nearest",
-        )
-        cbar = fig.colorbar(im, ax=ax, shrink=0.85)
-        cbar.set_label(f"elevation (m), {grid.mode} hit per {grid.cell_m:g} m cell")
-    if trees is not None and len(trees):
-        t = _xy(trees)
-        ax.scatter(t[:, 0], t[:, 1], s=12, marker="^", facecolors="none", edgecolors="darkgreen",
-                   linewidths=0.8, label="trees")
-    if scan_positions is not None and len(scan_positions):
-        s = _xy(scan_positions)
-        ax.scatter(s[:, 0], s[:, 1], s=40, marker="o", c="red", edgecolors="black", label="scans")
-        if isinstance(scan_positions, pd.DataFrame) and "scan" in scan_positions:
-            for (x, y), name in zip(s, scan_positions["scan"].astype(str), strict=True):
-                ax.annotate(name, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=8)
-    if (trees is not None and len(trees)) or (scan_positions is not None and len(scan_positions)):
-        ax.legend(loc="upper right", fontsize=8)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(title)
-    fig.tight_layout()
-    return _atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=dpi))
 
 
 def elevation_to_table(grid) -> pd.DataFrame:

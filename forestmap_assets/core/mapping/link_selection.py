@@ -92,7 +92,7 @@ def check_link_hypothesis(
     not close a loop with the baseline (an end not yet placed) is ``untestable``.
     ``iterate`` re-projects to convergence after adding the link (inferred; the thesis solves
     once). ``scan_correlation`` only inflates the solution's pose covariance (see
-    :func:`~forestmap_assets.core.optimal_map.shared_scan_covariance`); the verdict does not
+    :func:`~forestmap_assets.core.mapping.optimal_map.shared_scan_covariance`); the verdict does not
     depend on it.
     """
     hyp = hypothesis.to_frame().T if isinstance(hypothesis, pd.Series) else hypothesis
@@ -233,7 +233,7 @@ def select_links(
 
     ``iterate`` solves each map to convergence of the projection headings (inferred).
     ``scan_correlation`` (rho) gives the final map's pose covariance for observations that
-    share a scan (:func:`~forestmap_assets.core.optimal_map.shared_scan_covariance`); the
+    share a scan (:func:`~forestmap_assets.core.mapping.optimal_map.shared_scan_covariance`); the
     admission decisions do not depend on it.
     """
     cand = candidates.reset_index(drop=True)

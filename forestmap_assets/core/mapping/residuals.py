@@ -1,4 +1,5 @@
-"""Residuals of the optimal map and the thesis's consistency rule (Th. Eq. 6.4, JP eq. (11); spec 8.5).
+"""Residuals of the optimal map and the thesis's consistency rule (Th. Eq. 6.4, JP eq. (11); spec
+8.5).
 
 ``e_(i,j) = d_ij - (x_i - x_j)`` for every observation, component-wise in the global frame,
 with the observation projected exactly as in the solve; ``r = e / sigma`` with the observation's

@@ -1,0 +1,113 @@
+"""Point-to-plane ICP for clouds without colour (inferred): 4-DoF (x, y, z, heading) Gauss-Newton
+with optional Tukey IRLS and box clamp, and Open3D's point-to-plane ICP from a 4-DoF start."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_matrix, project_box
+from forestmap_assets.core.registration.icp_uncertainty import pose_jacobian
+
+
+def point_to_plane_4dof(
+    model_xyz: np.ndarray,
+    model_normals: np.ndarray,
+    data_xyz: np.ndarray,
+    init_pose,
+    *,
+    max_distance_m: float,
+    iterations: int = 5,
+    tree: cKDTree | None = None,
+    box=None,
+    tol: float = 1e-7,
+    robust_k: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """4-DoF point-to-plane Gauss-Newton ICP (x, y, z, heading): pose, final partner indices
+    (-1 none) and iterations (inferred). With ``robust_k``, iteratively re-weighted least squares with Tukey's biweight at
+    ``robust_k`` times the residuals' robust spread (1.4826 MAD), so that pairs of different
+    surfaces within ``max_distance_m`` do not bias the pose (inferred)."""
+    model = np.asarray(model_xyz, dtype=np.float64)
+    normals = np.asarray(model_normals, dtype=np.float64)
+    data = np.asarray(data_xyz, dtype=np.float64)
+    tree = tree or cKDTree(model)
+    pose = np.asarray(init_pose, dtype=np.float64).copy()
+    partner = np.full(len(data), -1)
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007
+        r, t = pose4_to_matrix(pose)
+        moved = data @ r.T + t
+        _, idx = tree.query(moved, k=1, distance_upper_bound=max_distance_m)
+        ok = idx < len(model)
+        ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
+        partner = np.where(ok, idx, -1)
+        if ok.sum() < 4:
+            break
+        nv = normals[idx[ok]]
+        jn = np.einsum("ni,nid->nd", nv, pose_jacobian(moved[ok] - t, 4))
+        res = (nv * (model[idx[ok]] - moved[ok])).sum(axis=1)
+        if robust_k is not None:
+            c = robust_k * max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 1e-6)
+            w = np.clip(1.0 - (res / c) ** 2, 0.0, None) ** 2
+            jw = jn * w[:, None]
+            delta = np.linalg.lstsq(jw.T @ jn, jw.T @ res, rcond=None)[0]
+        else:
+            delta = np.linalg.lstsq(jn.T @ jn, jn.T @ res, rcond=None)[0]
+        # p(delta) = R_z(h + dh) d + t + dt: the increments add to the pose (see pose_jacobian)
+        pose = np.array([*(t + delta[:3]), pose[3] + np.degrees(delta[3])])
+        if box is not None:
+            r2, t2, _ = project_box(*pose4_to_matrix(pose), box)
+            pose = matrix_to_pose4(r2, t2)
+        if np.abs(delta[:3]).max() < tol and abs(delta[3]) < tol:
+            break
+    return pose, partner, it
+
+
+def open3d_point_to_plane(
+    model_xyz: np.ndarray,
+    data_xyz: np.ndarray,
+    init_pose,
+    *,
+    max_distance_m: float,
+    model_normals: np.ndarray | None = None,
+    normal_radius_m: float = 0.3,
+    max_iterations: int = 50,
+    tukey_k_m: float | None = None,
+) -> tuple[np.ndarray, int, float]:
+    """Open3D point-to-plane ICP from a 4-DoF start; returns the 6-DoF matrix, Open3D's
+    iteration-independent fitness count (pairs) and its inlier RMSE. ``tukey_k_m``: Open3D's
+    Tukey robust kernel with that cut-off (metres); None: least squares."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    tgt = o3d.geometry.PointCloud(
+        o3d.utility.Vector3dVector(np.asarray(model_xyz, dtype=np.float64))
+    )
+    if model_normals is None:
+        tgt.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=30)
+        )
+    else:
+        tgt.normals = o3d.utility.Vector3dVector(
+            np.nan_to_num(np.asarray(model_normals, dtype=np.float64))
+        )
+    src = o3d.geometry.PointCloud(
+        o3d.utility.Vector3dVector(np.asarray(data_xyz, dtype=np.float64))
+    )
+    r, t = pose4_to_matrix(init_pose)
+    init = np.eye(4)
+    init[:3, :3], init[:3, 3] = r, t
+    estimation = (
+        reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=tukey_k_m))
+        if tukey_k_m
+        else reg.TransformationEstimationPointToPlane()
+    )
+    res = reg.registration_icp(
+        src,
+        tgt,
+        max_distance_m,
+        init,
+        estimation,
+        reg.ICPConvergenceCriteria(max_iteration=max_iterations),
+    )
+    return np.asarray(res.transformation), len(res.correspondence_set), float(res.inlier_rmse)

@@ -1,0 +1,485 @@
+"""Materialising a campaign through Dagster (``forestmap run``). :func:`run_campaign` works in
+waves: it asks the stale-status resolver (:mod:`.status`) which partitions are missing or stale by
+their own cause, launches exactly those, and asks again (a re-run that reproduced the same content
+hash leaves its downstream fresh). Per-scan assets run as one Dagster run per scan partition (a
+corrupt scan fails only its own partitions), campaign-level assets after the scans in one run per
+wave. Every run is a real Dagster run in the persistent instance, launched with ``execute_job``
+machinery on a reconstructable job (:func:`campaign_job`) so that Dagster's multiprocess and Dask
+executors run the same code; a per-campaign lock in the instance folder makes a second run of one
+campaign wait, after which it finds everything fresh."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import multiprocessing
+import os
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dagster import DagsterEventType, DagsterInstance, Definitions
+from dagster._core.definitions.reconstruct import ReconstructableJob, build_reconstructable_job
+from dagster._core.execution.api import (
+    _check_execute_job_args,
+    _job_with_repository_load_data,
+    execute_run_iterator,
+)
+from dagster._core.storage.defs_state.base import set_defs_state_storage
+
+from forestmap_assets.assets.common import asset_key, job_name
+from forestmap_assets.io.campaign import Campaign, load_campaign
+from forestmap_assets.io.store import default_store_url
+from forestmap_assets.orchestration.executors import dask_cluster
+from forestmap_assets.orchestration.instance import get_instance, sync_partitions
+from forestmap_assets.orchestration.status import (
+    campaign_stages,
+    changed_scan_files,
+    direct_states,
+    observe_scan_files,
+    stage_parents,
+)
+from forestmap_assets.orchestration.workspace import EXECUTORS, build_definitions
+
+Progress = Callable[[str], None]
+
+
+CAMPAIGN_TAG = "forestmap/campaign"
+
+
+SCAN_TAG = "forestmap/scan"
+
+
+SESSION_TAG = "forestmap/session"
+
+
+QUIET = {"loggers": {"console": {"config": {"log_level": "CRITICAL"}}}}
+
+
+def campaign_job(folder: str, store_url: str, executor: str, kind: str):
+    """Reconstructor of a campaign's asset job (``kind`` ``scan`` or ``campaign``): every
+    process that executes a step (multiprocess children, Dask workers) rebuilds it from the
+    campaign folder, so the same code runs wherever the step lands."""
+    campaign = load_campaign(folder)
+    defs = build_definitions([campaign], store_url, executor=executor)
+    return defs.resolve_job_def(job_name(campaign, kind))
+
+
+@dataclass
+class RunSummary:
+    campaign: Campaign
+    ran: list[tuple[str, str | None]] = field(default_factory=list)  # (stage, partition)
+    failures: list[tuple[str, str | None, str]] = field(default_factory=list)  # stage, scan, reason
+    check_failures: list[tuple[str, str | None, str, str]] = field(default_factory=list)
+    run_ids: list[str] = field(default_factory=list)
+    not_built: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+@contextlib.contextmanager
+def campaign_lock(
+    instance: DagsterInstance, campaign: Campaign, progress: Progress
+) -> Iterator[None]:
+    """Exclusive lock per campaign in the instance folder: a second ``forestmap run`` of the same
+    campaign waits for the first, then finds its work done."""
+    folder = Path(instance.root_directory) / "locks"
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / f"{campaign.key}.lock", "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            progress(
+                f"{campaign.name}: another run of this campaign is in progress; waiting for it"
+            )
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+class _Session:
+    """One ``run_campaign`` call: launches runs, follows their events, keeps the summary."""
+
+    def __init__(
+        self,
+        campaign,
+        instance,
+        executor,
+        store_url,
+        progress,
+        workers,
+        dask_address,
+        stage_names=(),
+        defs: Definitions | None = None,
+    ):
+        self.campaign = campaign
+        self.instance = instance
+        self.executor = executor
+        self.store_url = store_url
+        self.progress = progress
+        self.workers = workers
+        self.dask_address = dask_address
+        self.defs = defs
+        self.session = uuid.uuid4().hex[:12]
+        self.summary = RunSummary(campaign)
+        self.failed: set[tuple[str, str | None]] = set()
+        self._stage_of_step = {f"{campaign.key}__{s}": s for s in stage_names}
+
+    def recon(self, kind: str):
+        return build_reconstructable_job(
+            "forestmap_assets.orchestration.runner",
+            "campaign_job",
+            reconstructable_args=(str(self.campaign.root), self.store_url, self.executor, kind),
+        )
+
+    def run_config(self, concurrent_runs: int) -> dict:
+        config: dict = dict(QUIET)
+        if self.executor == "multiprocess":
+            per_run = max(1, self.workers // max(concurrent_runs, 1))
+            config["execution"] = {
+                "config": {
+                    "max_concurrent": per_run,
+                    # children fork from a server that has imported forestmap once
+                    "start_method": {
+                        "forkserver": {"preload_modules": ["forestmap_assets.orchestration.runner"]}
+                    },
+                }
+            }
+        elif self.executor == "dask":
+            config["execution"] = {
+                "config": {"cluster": {"existing": {"address": self.dask_address}}}
+            }
+        return config
+
+    def execute(
+        self, kind: str, stages: list[str], partition: str | None, concurrent_runs: int
+    ) -> bool:
+        """One Dagster run of the given stages (one scan partition, or campaign level)."""
+        tags = {CAMPAIGN_TAG: self.campaign.key, SESSION_TAG: self.session}
+        if partition is not None:
+            tags.update({"dagster/partition": partition, SCAN_TAG: partition})
+        if self.executor == "in_process" and self.defs is not None:
+            # in this process: the job as already built (no reconstruction)
+            job_arg, load_data = self.defs.resolve_job_def(job_name(self.campaign, kind)), None
+        else:  # rebuilt from the campaign folder in every process that runs a step
+            job_arg, load_data = _job_with_repository_load_data(self.recon(kind))
+        job_arg, run_config, tags, resolved, op_selection = _check_execute_job_args(
+            job_arg=job_arg,
+            run_config=self.run_config(concurrent_runs),
+            tags=tags,
+            op_selection=None,
+        )
+        run = self.instance.create_run_for_job(
+            job_def=job_arg.get_definition(),
+            run_config=run_config,
+            op_selection=op_selection,
+            resolved_op_selection=resolved,
+            tags=tags,
+            job_code_origin=job_arg.get_python_origin()
+            if isinstance(job_arg, ReconstructableJob)
+            else None,
+            repository_load_data=load_data,
+            asset_selection=frozenset(asset_key(self.campaign, s) for s in stages),
+        )
+        self.summary.run_ids.append(run.run_id)
+        where = f"[{partition}] " if partition else ""
+        failed_steps: set[str] = set()
+        run_failure = ""
+        for event in execute_run_iterator(job_arg, run, self.instance):
+            stage = self._stage_of_step.get(event.step_key or "")
+            if event.event_type == DagsterEventType.ASSET_MATERIALIZATION:
+                mat = event.step_materialization_data.materialization
+                name = mat.asset_key.path[-1]
+                self.summary.ran.append((name, mat.partition))
+            elif event.event_type == DagsterEventType.STEP_SUCCESS and stage:
+                seconds = event.event_specific_data.duration_ms / 1000.0
+                self.progress(f"  {where}{stage} ({seconds:.1f} s)")
+            elif event.event_type == DagsterEventType.STEP_FAILURE and stage:
+                reason = _step_failure_reason(event)
+                failed_steps.add(stage)
+                self.failed.add((stage, partition))
+                self.summary.failures.append((stage, partition, reason))
+                self.progress(f"  {where}{stage} FAILED: {reason}")
+            elif event.event_type == DagsterEventType.ASSET_CHECK_EVALUATION:
+                ev = event.event_specific_data
+                if not ev.passed:
+                    text = ", ".join(
+                        f"{k}={v.value}"
+                        for k, v in ev.metadata.items()
+                        if not isinstance(v.value, dict)
+                    )
+                    owner = ev.asset_key.path[-1]
+                    self.summary.check_failures.append(
+                        (owner, partition, ev.check_name, ev.severity.value)
+                    )
+                    self.progress(
+                        f"  {where}check {owner}.{ev.check_name} failed ({ev.severity.value}): {text}"
+                    )
+            elif event.event_type == DagsterEventType.RUN_FAILURE:
+                err = getattr(event.event_specific_data, "error", None)
+                text = err.message if err is not None and err.message else event.message
+                run_failure = (text or "run failed").strip().splitlines()[0]
+        done = self.instance.get_run_by_id(run.run_id)
+        ok = bool(done and done.is_success)
+        if not ok:
+            # steps that never ran because something upstream failed
+            for stage in stages:
+                if stage not in failed_steps and (stage, partition) not in set(self.summary.ran):
+                    self.failed.add((stage, partition))
+            if not failed_steps:
+                first = stages[0]
+                self.summary.failures.append((first, partition, run_failure or "run failed"))
+                self.progress(f"  {where}run FAILED: {run_failure or 'run failed'}")
+        return ok
+
+    def run_scans(self, todo: dict[str, list[str]]) -> None:
+        """One run per scan: here one after another, or side by side in worker processes
+        (Dagster's run machinery is not thread-safe, so no threads)."""
+        if self.executor == "in_process" or len(todo) == 1:
+            for sid, stages in todo.items():
+                self.execute("scan", stages, sid, 1)
+            return
+        n = len(todo) if self.executor == "dask" else min(len(todo), self.workers)
+        # forked workers start at once (this process has imported everything); they are all
+        # forked at the first submit, before this process starts any thread of its own
+        ctx = multiprocessing.get_context("fork")
+        queue = ctx.Queue()
+        base = (
+            str(self.campaign.root),
+            self.instance.get_ref(),
+            self.executor,
+            self.store_url,
+            self.workers,
+            self.dask_address,
+            self.session,
+        )
+        drain = threading.Thread(target=_drain, args=(queue, self.progress), daemon=True)
+        try:
+            with ProcessPoolExecutor(
+                max_workers=n, mp_context=ctx, initializer=_init_worker, initargs=(queue,)
+            ) as pool:
+                futures = [
+                    pool.submit(_scan_worker, base, sid, stages, n) for sid, stages in todo.items()
+                ]
+                drain.start()
+                for fut in futures:
+                    ran, failures, checks, failed, run_ids = fut.result()
+                    self.summary.ran.extend(ran)
+                    self.summary.failures.extend(failures)
+                    self.summary.check_failures.extend(checks)
+                    self.summary.run_ids.extend(run_ids)
+                    self.failed |= failed
+        finally:
+            queue.put(None)
+            if drain.is_alive():
+                drain.join(timeout=5)
+
+
+_QUEUE = None
+
+
+def _init_worker(queue) -> None:
+    global _QUEUE
+    _QUEUE = queue
+
+
+def _drain(queue, progress: Progress) -> None:
+    while (line := queue.get()) is not None:
+        progress(line)
+
+
+def _scan_worker(base: tuple, sid: str, stages: list[str], concurrent_runs: int):
+    """One scan's run in a worker process; returns what the parent session records."""
+    folder, ref, executor, store_url, workers, dask_address, session_id = base
+    with DagsterInstance.from_ref(ref) as instance:
+        session = _Session(
+            load_campaign(folder),
+            instance,
+            executor,
+            store_url,
+            _QUEUE.put if _QUEUE is not None else print,
+            workers,
+            dask_address,
+            stages,
+        )
+        session.session = session_id
+        session.execute("scan", stages, sid, concurrent_runs)
+        s = session.summary
+        return s.ran, s.failures, s.check_failures, session.failed, s.run_ids
+
+
+def _step_failure_reason(event) -> str:
+    """One line: the user's ``Failure`` description, else the innermost error under Dagster's
+    wrappers (e.g. ``OSError: ...`` raised while storing an output)."""
+    data = event.step_failure_data
+    if data.user_failure_data and data.user_failure_data.description:
+        text = data.user_failure_data.description
+    else:
+        err = data.error
+        while err is not None and err.cls_name and err.cls_name.startswith("Dagster") and err.cause:
+            err = err.cause
+        text = err.message if err is not None else "failed"
+        if err is not None and os.environ.get("FORESTMAP_DEBUG"):
+            print("".join(err.stack), file=sys.stderr)
+    return (text or "failed").strip().splitlines()[0]
+
+
+def _safe_subset(candidates: set[str], parents: dict[str, list[str]]) -> set[str]:
+    """Candidates that may run in one wave: drop a stage that reads a non-candidate stage which
+    itself lies downstream of a candidate (it would read an input about to change)."""
+
+    def downstream_of_candidate(stage: str, seen: set[str]) -> bool:
+        for p in parents.get(stage, []):
+            if p in chosen or (p not in seen and downstream_of_candidate(p, seen | {p})):
+                return True
+        return False
+
+    chosen = set(candidates)
+    changed = True
+    while changed:
+        changed = False
+        for stage in sorted(chosen):
+            if any(
+                p not in chosen and downstream_of_candidate(p, {p}) for p in parents.get(stage, [])
+            ):
+                chosen.discard(stage)
+                changed = True
+    return chosen
+
+
+def run_campaign(
+    folder: str | Path,
+    *,
+    executor: str = "in_process",
+    store_url: str | None = None,
+    progress: Progress = print,
+    instance: DagsterInstance | None = None,
+    workers: int | None = None,
+    dask_address: str | None = None,
+    stages: list[str] | None = None,
+) -> RunSummary:
+    """Materialise every missing or stale asset of a campaign, and nothing else.
+
+    ``stages`` limits the work to those stages and what they read (default: all).
+
+    ``executor``: ``in_process`` (one run after another in this process), ``multiprocess``
+    (Dagster's multiprocess executor, scans' runs side by side, ``workers`` processes in all) or
+    ``dask`` (dagster-dask on the cluster at ``dask_address`` / ``$FORESTMAP_DASK_ADDRESS``, else a
+    local cluster; put the store on a path every worker sees: ``$FORESTMAP_STORE``).
+    """
+    if executor not in EXECUTORS:
+        raise ValueError(f"--executor: {executor!r} is not one of {', '.join(EXECUTORS)}")
+    start = time.perf_counter()
+    campaign = load_campaign(folder)
+    instance = instance or get_instance()
+    store_url = store_url or default_store_url()
+    workers = workers or os.cpu_count() or 2
+    defs = build_definitions([campaign], store_url, executor=executor)
+    # resolve definitions against this instance (not a stale one a caller left in the context)
+    with set_defs_state_storage(instance.defs_state_storage):
+        return _run(
+            campaign,
+            defs,
+            instance,
+            executor,
+            store_url,
+            progress,
+            workers,
+            dask_address,
+            stages,
+            start,
+        )
+
+
+def _run(
+    campaign, defs, instance, executor, store_url, progress, workers, dask_address, stages, start
+) -> RunSummary:
+    parents = stage_parents(defs, campaign)
+    stages_all = campaign_stages(defs, campaign)
+    if stages is not None:
+        unknown = sorted(set(stages) - {s for s, _ in stages_all})
+        if unknown:
+            raise ValueError(
+                f"unknown stage {unknown[0]!r} (stages: {', '.join(s for s, _ in stages_all)})"
+            )
+        wanted = set(stages)
+        for stage, _ in reversed(stages_all):
+            if stage in wanted:
+                wanted |= set(parents[stage])
+        stages_all = [(s, g) for s, g in stages_all if s in wanted]
+    granularity = dict(stages_all)
+    scan_stages = [s for s, g in stages_all if g == "scan"]
+    level_stages = [s for s, g in stages_all if g == "campaign"]
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(campaign_lock(instance, campaign, progress))
+        if executor == "dask":
+            dask_address = stack.enter_context(dask_cluster(dask_address, workers, progress))
+        session = _Session(
+            campaign,
+            instance,
+            executor,
+            store_url,
+            progress,
+            workers,
+            dask_address,
+            [s for s, _ in stages_all],
+            defs,
+        )
+        summary = session.summary
+        sync_partitions(instance, campaign)
+        observe_scan_files(instance, campaign, changed_scan_files(campaign, instance, defs=defs))
+        attempted: set[tuple[str, str | None]] = set()
+        first = True
+        while True:
+            states = direct_states(defs, campaign, instance, check_files=False)
+            due = {
+                k
+                for k, v in states.items()
+                if v != "fresh" and k not in attempted and k[0] in granularity
+            }
+            # never retry what failed, nor what reads something that failed in this session
+            blocked = set(session.failed)
+            for stage, g in stages_all:
+                for part in campaign.scan_ids if g == "scan" else [None]:
+                    if any(
+                        (p, part) in blocked for p in parents.get(stage, []) if granularity[p] == g
+                    ):
+                        blocked.add((stage, part))
+            due -= blocked
+            scans: dict[str, list[str]] = {}
+            for sid in campaign.scan_ids:
+                wanted = {s for s in scan_stages if (s, sid) in due}
+                chosen = _safe_subset(
+                    wanted,
+                    {s: [p for p in parents[s] if granularity[p] == "scan"] for s in scan_stages},
+                )
+                if chosen:
+                    scans[sid] = [s for s in scan_stages if s in chosen]
+            if first:
+                fresh = sum(1 for sid in campaign.scan_ids if sid not in scans)
+                progress(
+                    f"{campaign.name}: {len(campaign.scan_ids)} scans, {len(scans)} to process, {fresh} up to date"
+                )
+                first = False
+            if scans:
+                attempted |= {(s, sid) for sid, stages in scans.items() for s in stages}
+                session.run_scans(scans)
+                continue
+            level = _safe_subset(
+                {s for s in level_stages if (s, None) in due},
+                {s: [p for p in parents[s] if granularity[p] == "campaign"] for s in level_stages},
+            )
+            if not level:
+                break
+            stages = [s for s in level_stages if s in level]
+            attempted |= {(s, None) for s in stages}
+            progress(f"  campaign: {', '.join(stages)}")
+            session.execute("campaign", stages, None, 1)
+    summary.seconds = time.perf_counter() - start
+    return summary

@@ -1,0 +1,107 @@
+"""Shared style of the 2-D figures: the palette (registration statuses, bark, no-return, elevation
+colour map),
+pyplot-free figures (no global state, safe in worker processes), atomic PNG writing and inline PNG
+bytes,
+and the scan-frame axis symbols (JP Fig. 11) drawn by the network and elevation figures."""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+STATUS_COLOURS = {
+    "accepted": "#1b7837",
+    "rejected": "#d95f02",
+    "failed": "#7f7f7f",
+    "admitted": "#1f4e9c",
+    "ok": "#1b7837",
+    "inconsistent": "#c51b1b",
+}
+
+
+BARK = "#8c5a2b"
+
+
+NO_RETURN = "#cfe3f5"
+
+
+NO_VALUE = "#a0a0a0"
+
+
+ELEVATION_CMAP = "YlGn_r"  # lighter = higher (thesis Fig. 6.11); the same scale as map.png
+
+
+def new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:
+    """A pyplot-free figure with an Agg canvas."""
+    fig = Figure(figsize=(width, height), layout=layout)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def png_bytes(fig: Figure, dpi: int = 110) -> bytes:
+    """The figure as PNG bytes."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def save_png(fig: Figure, path: str | os.PathLike, dpi: int = 110) -> Path:
+    """Write the figure as PNG atomically (temporary file + ``os.replace``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_bytes(png_bytes(fig, dpi))
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def colour_map(name: str):
+    from matplotlib import colormaps
+
+    return colormaps[name]
+
+
+def _registered(poses: pd.DataFrame) -> pd.DataFrame:
+    reg = poses["registered"]
+    if reg.dtype != bool:
+        reg = reg.astype(str).str.lower().isin(["true", "1"])
+    return poses[reg.to_numpy(bool)]
+
+
+def scan_frames(ax, poses: pd.DataFrame, length_m: float, reference: str | None = None) -> None:
+    """Scan positions as xy axis symbols rotated by the heading (JP Fig. 11): x red, y green;
+    the reference scan's symbol is twice as large."""
+    for r in poses.itertuples(index=False):
+        size = 2 * length_m if r.scan == reference else length_m
+        h = np.radians(float(r.heading_deg))
+        for (ux, uy), colour in (
+            ((np.cos(h), np.sin(h)), "#d62728"),
+            ((-np.sin(h), np.cos(h)), "#2ca02c"),
+        ):
+            ax.annotate(
+                "",
+                xy=(r.x + size * ux, r.y + size * uy),
+                xytext=(r.x, r.y),
+                arrowprops=dict(arrowstyle="-|>", color=colour, lw=1.6, mutation_scale=9),
+            )
+        ax.plot(r.x, r.y, "o", ms=4, color="black")
+        ax.annotate(
+            str(r.scan),
+            (r.x, r.y),
+            xytext=(-10, -12),
+            textcoords="offset points",
+            fontsize=10,
+            fontweight="bold",
+            color="black",
+            bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.7),
+        )

@@ -1,0 +1,336 @@
+"""One parameter model per pipeline stage, with the thesis values as presets (the package is the
+bottom layer: it imports nothing of forestmap but its own :mod:`.men`, the Men 2012 settings).
+
+Presets come from Forsman (2001) Tables 4.1-4.3 and the registration settings of spec 6.6
+(`reference/forsman_spec.md`). A campaign picks a preset with ``environment`` and overrides
+single keys under ``params`` (DESIGN.md 2.1). Each stage's resolved section is hashed into the
+code version of that stage's Dagster assets, so changing one stage's parameters makes exactly
+that stage and its downstream stale.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+Environment = Literal["forest", "outdoor", "indoor"]
+
+
+class _Stage(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    def digest(self) -> str:
+        """Short stable hash of this section's values (for Dagster code versions)."""
+        text = json.dumps(self.model_dump(mode="json"), sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+class SegmentationParams(_Stage):
+    """Scan-line segmentation, spec 2 / Table 4.1."""
+
+    min_width_m: float = 0.06
+    max_width_m: float = 1.0
+    max_occluder_m: float = 0.04
+    range_sigma_m: float = 0.025
+    range_step_m: float = 0.11
+    min_points: int = 4
+    outlier_sigmas: float = 3.0  # T_out = 0.5 W + outlier_sigmas * sigma (Eq. 4.7)
+    link_range_step_m: float = 0.11  # (inferred) max |delta r_mid| to link segments vertically
+    max_window_px: int = 101
+
+
+class CircleParams(_Stage):
+    """Circle models, spec 3 / Table 4.2."""
+
+    symmetry_threshold_m: float = 0.0041
+    initial_symmetry_factor: float = 2.0  # (inferred) relaxation of the symmetry test, initial phase
+    collect_height_m: float = 0.15
+    max_neighbour_segments: int = 14
+    initial_neighbour_segments: int = 2  # (inferred) +-2 segments in the initial phase
+    axis_span_m: float = 0.6
+    iterations: int = 2
+    max_iterations: int = 5
+    robust_sigmas: float = 3.0
+    robust_max_rounds: int = 10
+    max_axis_tilt_deg: float = 30.0
+    fit: Literal["linear", "geometric", "ray"] = "linear"  # linear = the thesis's Eq. 4.8-4.11
+    symmetry_statistic: Literal["mean", "noise_corrected"] = "mean"
+    stable_centre_m: float = 0.001
+    stable_radius_m: float = 0.001
+    stable_normal_deg: float = 0.5
+    stable_share: float = 0.8
+    engine: Literal["auto", "numpy", "numba"] = "auto"
+    max_batch_points: int = 2_000_000
+
+
+class CylinderParams(_Stage):
+    """Cylinder (truncated-cone) segments, spec 4 / Table 4.2."""
+
+    min_length_m: float = 0.5
+    curvature_deg: float = 12.0
+    max_gap_m: float = 0.24
+    min_circles: int = 3
+    curvature_reference: Literal["first", "running"] = "first"
+    # (inferred) largest angle between a cylinder's centre line and its circles' mean normal;
+    # None: the curvature threshold. Drops chains of branch/foliage circles (core/cylinders.py)
+    axis_normal_deg: float | None = None
+
+
+class LineParams(_Stage):
+    """Horizontal wall/ceiling border lines, spec 5 / Table 4.3 (outdoor values)."""
+
+    cell_m: float = 0.2
+    tangent_interval_m: float = 1.4
+    tangent_change_deg: float = 90.0
+    end_distance_m: float = 0.4
+    min_length_m: float = 1.5
+    max_inclination_deg: float = 5.0
+    enabled: bool = True
+    max_range_m: float = 40.0
+    # (inferred) occupancy-grid and border details, see core/lines.py
+    max_beams: int = 100_000
+    step_fraction: float = 0.5
+    hit_margin_m: float | None = None
+    min_wall_extent_m: float = 0.5
+    top_tolerance_m: float | None = None
+    wall_depth_cells: int = 2
+    border_xy: Literal["hits", "edge", "centre"] = "hits"
+    link_cells: int = 2
+    split_at_outliers: bool = True
+
+
+class ElevationParams(_Stage):
+    """Per-scan lowest/highest-hit grid, spec 9."""
+
+    cell_m: float = 0.1
+    mode: Literal["lowest", "highest"] = "lowest"
+    render_cell_m: float = 0.6
+    n_lowest: int = 5
+    supersample: int = 2  # (inferred) merge without holes after rotation
+    max_distance_m: float | None = None
+
+
+class SubmapParams(_Stage):
+    """Registration points along feature centre lines, spec 6.2 (Delta_d)."""
+
+    spacing_m: float = 0.05
+    # (inferred, issue 10) cylinders sampled cylinder_weight x as densely as wall lines
+    # (core/submaps.py): a pillar point fixes both horizontal directions, a line point one
+    cylinder_weight: int = 1
+
+
+class RegistrationParams(_Stage):
+    """Branch-and-bound registration, spec 6.3-6.6 (forest set of Table 6.6)."""
+
+    sigma_m: float = 0.035
+    inlier_share: float = 0.3
+    outlier_distance_m: float = 0.3
+    final_cell_m: float = 0.02
+    xy_m: float = 5.0
+    z_m: float = 1.25
+    heading_deg: float = 60.0
+    method: Literal["fast", "thesis"] = "fast"
+    weight: Literal["linear", "exp"] = "linear"  # cell-cloud weight of JP eq. 6 (inferred)
+    s_floor: float | None = None
+    adjacency: Literal[8, 80] = 80
+    hypothesis_separation_m: float = 0.3
+    # structured-site guards (core/pair_checks.py, inferred; spec 7.3, 11): reject a result
+    # whose matched features fix a horizontal direction with less than min_support_m of
+    # feature (only parallel wall lines: pair 87), or (max_rival_ratio set) that a credible
+    # alignment farther than rival_exclusion_m nearly equals (a pillar row shifted by its
+    # period: pair 43)
+    min_support_m: float = 1.0
+    max_rival_ratio: float | None = None
+    rival_exclusion_m: float = 1.0
+    # (inferred; None: off) and reject a result whose coarse-to-fine history preferred an
+    # alignment farther than rival_exclusion_m with cells of at most history_max_cell_m (a
+    # secondary hypothesis that led late; Th. Fig. 5.8, core/pair_checks.assess_history)
+    history_max_cell_m: float | None = None
+    max_cells: int = 60_000  # a level keeping more cells than this is reported as ambiguous
+    # (inferred) 'lattice': bound each cell over the final-lattice poses inside it (same peak,
+    # 2-3x less CPU; clouds grown to cloud_margin for the sigmas); 'cell': the continuous bound
+    # of spec 6.4 (the thesis method always uses it; the indoor and outdoor presets too: with
+    # the parking lot's 0.156 m cells the lattice-bound cloud is the peak cell alone, and the
+    # JP eq. 6 centre loses the cell-bound cloud's sub-cell interpolation: pair xy errors
+    # 5-16 mm -> 11-51 mm on the simulated parking lot)
+    bound: Literal["cell", "lattice"] = "lattice"
+    lattice_margin: float = 10.0
+    cloud_margin: float = 240.0  # (inferred) clouds of the JP eq. 6 / tempered sigmas, lattice bound
+    min_matched_stems: int = 4  # (inferred) distinct features supporting an accepted result
+    # (beyond the thesis, its spec 9 "future source"): dz of accepted pairs from the ground grids
+    z_from_ground: bool = True
+    # observation sigmas (core/pair_registrations.py; beyond the thesis, calibrated on simulated
+    # campaigns, benchmarks/results.md "Whole pipeline"): tempered cell-cloud likelihood for x, y
+    # (likelihood_temperature) and heading (heading_temperature), None: JP eq. 6 as published
+    likelihood_temperature: float | None = 40.0
+    heading_temperature: float | None = 6.0
+    ground_min_sd_m: float = 0.002
+    feature_z_sd_m: float = 0.15
+    # pairs with no prior: 'bnb' searches the no-prior box (full circle, plot-size xy); 'fourier'
+    # centres the forest box on the Fourier coarse registration of the raw points (men spec 4);
+    # 'bnb' is the default, from benchmarks/results.md "Coarse registration without a prior"
+    no_prior_method: Literal["bnb", "fourier"] = "bnb"
+    # candidate pairs (spec 6.4 box; inferred selection rules)
+    k_nearest: int = 4
+    max_distance_m: float = 30.0
+    max_xy_m: float = 20.0
+
+
+class MappingParams(_Stage):
+    """Optimal map and residual checks, spec 8."""
+
+    residual_sigmas: float = 3.0
+    z_residual_sigmas: float = 8.0
+    method: Literal["optimal", "chain"] = "optimal"
+    covariance: Literal["published", "full"] = "published"
+    iterate: bool = False  # re-project to convergence within each phase (thesis: once)
+    linearisation: Literal["projection", "gauss_newton"] = "projection"
+    max_iterations: int = 50
+    check_new_link: bool = True
+    chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
+    # correlation of two observations sharing a scan (x, y, z, heading), for the pose sigmas
+    # only (core/optimal_map.shared_scan_covariance; beyond the thesis; 0 = the thesis):
+    # branch-and-bound links, and links whose pose the refinement stage replaced
+    scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    refined_scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+
+def _section_from_config(name: str, config: type) -> type[_Stage]:
+    """A parameter section with the fields and defaults of a core settings dataclass, so the
+    stages of Men 2012 (refinement, exploration) are configured like every other stage."""
+    import dataclasses
+    import typing
+
+    from pydantic import create_model
+
+    hints = typing.get_type_hints(config)
+    return create_model(name, __base__=_Stage, **{
+        f.name: (hints[f.name], f.default) for f in dataclasses.fields(config)
+    })
+
+
+def _occlusion_section() -> type[_Stage]:
+    from forestmap_assets.params.men import OcclusionConfig
+
+    return _section_from_config("OcclusionParams", OcclusionConfig)
+
+
+def _exploration_section() -> type[_Stage]:
+    from forestmap_assets.params.men import ExplorationConfig
+
+    return _section_from_config("ExplorationParams", ExplorationConfig)
+
+
+def _refine_section() -> type[_Stage]:
+    from forestmap_assets.params.men import RefineSettings
+
+    return _section_from_config("RefineParams", RefineSettings)
+
+
+RefineParams = _refine_section()  # fine registration on the raw points (men_spec 5; core/refine.py)
+OcclusionParams = _occlusion_section()  # occlusion boundaries (Men 2012 3.3; men_spec 3.1)
+ExplorationParams = _exploration_section()  # grid, coverage, next vantage points (men_spec 7)
+
+
+class Params(BaseModel):
+    """All stages' parameters for one campaign."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    segmentation: SegmentationParams = SegmentationParams()
+    circles: CircleParams = CircleParams()
+    cylinders: CylinderParams = CylinderParams()
+    lines: LineParams = LineParams()
+    elevation: ElevationParams = ElevationParams()
+    submaps: SubmapParams = SubmapParams()
+    registration: RegistrationParams = RegistrationParams()
+    refine: RefineParams = RefineParams()  # type: ignore[valid-type]
+    mapping: MappingParams = MappingParams()
+    occlusion: OcclusionParams = OcclusionParams()  # type: ignore[valid-type]
+    exploration: ExplorationParams = ExplorationParams()  # type: ignore[valid-type]
+
+    def digest(self, stage: str) -> str:
+        return getattr(self, stage).digest()
+
+
+STAGES = tuple(Params.model_fields)
+
+# Differences from the forest defaults above (Tables 4.1-4.3, spec 6.6).
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "forest": {
+        "lines": {"enabled": False},
+        # (inferred) as indoor: with 2.5 cm range noise the linear fit's mean signed residual is
+        # biased by -sigma^2/(2r), which rejects thin trunks beyond ~10 m under the 4.1 mm test
+        # (benchmarks/results.md, feature extraction: 93.6 % -> 97.4 % of stems found)
+        "circles": {"symmetry_statistic": "noise_corrected"},
+        # (inferred) links sharing a scan share its feature errors: measured correlation on
+        # simulated forests (benchmarks/results.md "Whole pipeline"): branch-and-bound links at
+        # quarter resolution, refined links (fitted on the raw points) at half resolution
+        "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05),
+                    "refined_scan_correlation": (0.1, 0.1, 0.1, 0.0)},
+    },
+    "outdoor": {
+        "circles": {"symmetry_threshold_m": 0.0041},
+        "submaps": {"cylinder_weight": 2},
+        "cylinders": {"min_length_m": 0.3, "curvature_deg": 10.0},
+        "registration": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156,
+                         "min_matched_stems": 3, "max_rival_ratio": 0.6,
+                         "history_max_cell_m": 0.3, "bound": "cell"},
+    },
+    "indoor": {
+        "segmentation": {"min_width_m": 0.2},
+        "submaps": {"cylinder_weight": 2},
+        # (inferred) with 2.5 cm range noise the linear fit's mean signed residual is biased by
+        # sigma^2/(2r) = 1.6 mm on a 0.192 m pillar, above the 0.7 mm threshold: the "mean"
+        # statistic rejects every simulated pillar (benchmarks/results.md, "Structured sites")
+        "circles": {"symmetry_threshold_m": 0.0007, "symmetry_statistic": "noise_corrected"},
+        "cylinders": {"min_length_m": 1.0, "curvature_deg": 12.0},
+        "lines": {
+            "cell_m": 0.1,
+            "tangent_interval_m": 1.0,
+            "tangent_change_deg": 80.0,
+            "end_distance_m": 0.15,
+            "min_length_m": 2.0,
+        },
+        "registration": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195,
+                         "min_matched_stems": 2, "max_rival_ratio": 0.6,
+                         "history_max_cell_m": 0.3, "bound": "cell"},
+    },
+}
+
+# The thesis experiments' registration settings (spec 6.6), selectable by name.
+REGISTRATION_PRESETS: dict[str, dict[str, float]] = {
+    "fe_demo": {"xy_m": 5.0, "z_m": 1.25, "heading_deg": 180.0, "final_cell_m": 0.04},
+    "indoor": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195},
+    "parking_lot": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156},
+    "forest": {"xy_m": 5.0, "z_m": 1.25, "heading_deg": 60.0, "final_cell_m": 0.02},
+}
+
+
+class ParamsError(ValueError):
+    """A parameter override that does not fit the model."""
+
+
+def resolve_params(
+    environment: str = "forest",
+    overrides: dict[str, dict[str, Any]] | None = None,
+) -> Params:
+    """Preset for ``environment`` with a campaign's per-stage ``overrides`` applied."""
+    if environment not in PRESETS:
+        raise ParamsError(f"environment: {environment!r} is not one of {sorted(PRESETS)}")
+    merged: dict[str, dict[str, Any]] = {k: dict(v) for k, v in PRESETS[environment].items()}
+    for stage, values in (overrides or {}).items():
+        if stage not in STAGES:
+            raise ParamsError(f"params.{stage}: unknown stage (expected one of {', '.join(STAGES)})")
+        if not isinstance(values, dict):
+            raise ParamsError(f"params.{stage}: expected a mapping of keys to values")
+        merged.setdefault(stage, {}).update(values)
+    try:
+        return Params(**merged)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"])
+        raise ParamsError(f"params.{where}: {err['msg']}") from None

@@ -1,0 +1,142 @@
+"""Settings of the stages from Men (2012) (fine registration, occlusion boundaries, exploration)
+as plain dataclasses, used by the core and turned into parameter sections by
+:mod:`forestmap_assets.params`. Imports nothing of forestmap, so the package may import it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """Settings of the refinement (all inferred; see module doc)."""
+
+    method: str = "auto"  # auto | hicp | icp | point_to_plane | none
+    weight: float = 0.05  # hue weight; 0.05 was best on real data (men spec 5.8, Table 5.3)
+    hue_offset: bool = True  # remove the median hue difference between the scans first
+    plane_polish: bool = True  # finish HICP with robust 4-DoF point-to-plane steps
+    scale: str = "isotropic"
+    hue_mode: str = "linear"
+    max_range_m: float = 20.0
+    z_band_m: tuple[float, float] = (-10.0, 1.5)  # relative to each sensor: drops the canopy
+    overlap_margin_m: float = 0.5
+    data_voxel_m: float = 0.1
+    model_voxel_m: float = 0.02
+    radius_m: float = 0.2
+    box_sigmas: float = 3.0
+    max_iterations: int = 100
+    normal_k: int = 20
+    correlation_m: float = 0.5
+    sd_floor_m: float = 0.004
+    sd_floor_z_m: float = 0.002
+    sd_floor_deg: float = 0.012
+    sd_inflation: float = 1.8  # the ICP-Hessian sigmas are multiplied by this before the floors
+    min_pairs: int = 200
+    min_fit_gain: float = 0.0  # relative: the refined fit must be lower by this share
+    # point-to-plane: the number of 4-DoF Gauss-Newton steps, and Open3D's 6-DoF ICP first
+    plane_iterations: int = 30
+    open3d_start: bool = True
+    robust_k: float | None = 4.685  # Tukey's biweight constant (95 % efficiency); None: least squares
+
+
+Combine = Literal["spacing", "variance", "either", "both"]
+
+
+@dataclass(frozen=True)
+class OcclusionConfig:
+    """Parameters of :func:`detect_occlusions` and of the observed-surface voxels derived from
+    it (:func:`~forestmap_assets.core.exploration.surface.observed_surface`): thesis thresholds 5 deg / 5 deg (men_spec 3.1.2);
+    ``variance_threshold_m`` not stated (0.3 m inferred); surface sampling inferred."""
+
+    alpha_thr_deg: float = 5.0
+    beta_thr_deg: float = 5.0
+    variance_threshold_m: float = 0.3
+    combine: Combine = "spacing"
+    ratio_cutoff: float | None = None
+    exact_angles: bool = True
+    surface_voxel_m: float = 0.05
+    fill_step_m: float = 0.1
+    max_fill_m: float = 2.0
+
+    @classmethod
+    def from_params(cls, section=None, **overrides) -> OcclusionConfig:
+        """From a pydantic parameter section (or dict) with the same keys; unknown keys ignored."""
+        from dataclasses import fields
+
+        values = section.model_dump() if hasattr(section, "model_dump") else dict(section or {})
+        values.update(overrides)
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in values.items() if k in names})
+
+    def detector_kwargs(self) -> dict:
+        return {
+            "alpha_thr_deg": self.alpha_thr_deg,
+            "beta_thr_deg": self.beta_thr_deg,
+            "variance_threshold_m": self.variance_threshold_m,
+            "combine": self.combine,
+            "ratio_cutoff": self.ratio_cutoff,
+            "exact_angles": self.exact_angles,
+        }
+
+
+@dataclass(frozen=True)
+class ExplorationConfig:
+    """Parameters of the exploration grid and the planner (men_spec 7.8; forest values inferred).
+
+    Thesis values: ``obstacle_min_m`` 0.3 m above the floor, ``min_overlap`` 0.5, ``n_proposals``
+    10 candidates, 8 zones, ``coverage_radius_m`` 8 m indoors (15 m here: the range within which
+    the pipeline finds stems), ``cell_m`` 0.2 m (0.25 m here). ``plot``: polygon vertices
+    ``[[x, y], ...]`` in the global frame; None = the scan positions' bounding box grown by
+    ``plot_margin_m``.
+    """
+
+    cell_m: float = 0.25
+    height_min_m: float = -0.5
+    height_max_m: float = 3.0
+    dz_m: float = 0.1
+    obstacle_min_m: float = 0.3
+    clearance_m: float = 1.8
+    min_ground_points: int = 1
+    min_obstacle_points: int = 3
+    ground_quantile: float = 0.25
+    ground_window_m: float = 1.0
+    map_range_m: float = 15.0
+    coverage_radius_m: float = 15.0
+    blind_radius_m: float = 1.8
+    n_rays: int = 720
+    stem_range_m: float = 15.0
+    stem_visible_share: float = 0.5
+    stem_min_pixels: float = 3.0
+    angular_step_deg: float | None = None
+    stem_margin_m: float = 0.05
+    overlap_rule: Literal["stems", "area", "either", "both"] = "stems"
+    min_common_stems: int = 5
+    min_overlap: float = 0.5
+    obstacle_clearance_m: float = 0.5
+    candidate_spacing_m: float = 2.0
+    min_scan_distance_m: float = 2.0
+    path_step_m: float = 1.0
+    distance_scale_m: float = 30.0
+    stem_bonus_m2: float = 10.0
+    n_proposals: int = 10
+    strategy: Literal["coverage", "thesis"] = "coverage"
+    zone_rule: Literal["heading", "unmapped"] = "heading"
+    w_unmapped: float = 1.0
+    w_wall: float = 1.0
+    tangential_trigger_deg: float = 150.0
+    min_density_per_m2: float = 100.0
+    plot: tuple[tuple[float, float], ...] | None = None
+    plot_margin_m: float = 10.0
+
+    @classmethod
+    def from_params(cls, section=None, **overrides) -> ExplorationConfig:
+        """From a pydantic parameter section (or dict) with the same keys; unknown keys ignored."""
+        values = section.model_dump() if hasattr(section, "model_dump") else dict(section or {})
+        values.update(overrides)
+        names = {f.name for f in fields(cls)}
+        values = {k: v for k, v in values.items() if k in names}
+        if values.get("plot") is not None:
+            values["plot"] = tuple((float(x), float(y)) for x, y in values["plot"])
+        return cls(**values)
