@@ -2,7 +2,7 @@
 
 Builds a full-resolution (3000 x 720, 0.108 deg) analytic forest range image (40 stems of
 radius 0.05-0.3 m at 2-20 m, leaning up to 10 deg, flat ground, 2.5 cm range noise) with the
-exact ray caster of ``tests/synthetic.py``, times each stage (median of ``--runs``), measures
+exact ray caster of ``tests/helpers/synthetic.py``, times each stage (median of ``--runs``), measures
 stem detection and radius accuracy for the three circle fits, runs the pillar study of spec 4.1
 (0.192 m pillar at 1.2-18.4 m, with and without a wide-beam footprint model) and, when
 ``forestmap_assets.sim`` is available, measures the same on simulated forests (``--seeds`` x
@@ -29,7 +29,7 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the analytic scene generator lives with the tests
 
-import synthetic as S  # noqa: E402
+from helpers import synthetic as S  # noqa: E402
 from results_md import write_section  # noqa: E402
 
 from forestmap_assets.core.features._circle_kernels import HAVE_NUMBA
@@ -322,7 +322,7 @@ def main(argv=None) -> int:
         f"{os.cpu_count()} cores (shared), median of {args.runs} runs. Analytic forest: "
         f"{img.shape[1]}x{img.shape[0]} px at 0.108 deg, 40 stems r 0.05-0.3 m at 2-20 m, "
         "lean <= 10 deg, flat ground, 2.5 cm range noise (exact ray casting, "
-        "`tests/synthetic.py`).",
+        "`tests/helpers/synthetic.py`).",
         "",
         f"**Full-resolution chain, default settings (linear fit, {engines[0]} engine): "
         f"{best['total_s']:.2f} s** (target <= 3 s; thesis ~30 min).",

@@ -1,6 +1,6 @@
 """Reliability of runs (issue 6): two runs of one campaign at once leave one consistent store
 with every asset materialised once; a failed run leaves no partial Parquet file. (A corrupt scan
-failing only its own partitions: tests/test_range_images_asset.py.)"""
+failing only its own partitions: tests/orchestration/test_range_images_asset.py.)"""
 
 from __future__ import annotations
 

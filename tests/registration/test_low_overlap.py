@@ -76,6 +76,7 @@ def test_no_wrong_link_and_every_scan_with_a_correct_path_placed(outcome):
     assert good["admitted"].all(), good[["scan", "reference", "admitted"]]
 
 
+@pytest.mark.slow
 def test_link_tests_alone_keep_wrong_registrations_out(outcome):
     """Without the pair judge's overlap rules, the loop test of the optimal map (Th. 7.1) must
     reject wrong links: every "too little overlap" result is offered as a candidate, and every
@@ -105,6 +106,7 @@ def test_link_tests_alone_keep_wrong_registrations_out(outcome):
     assert not sel.unregistered
 
 
+@pytest.mark.slow
 def test_normalised_pair_errors_are_not_wildly_off(outcome):
     regs, _, _ = outcome
     ok = regs[regs["admitted"] & regs["correct"]]
