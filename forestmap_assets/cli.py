@@ -51,7 +51,11 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--resolution", choices=["full", "half", "quarter"], default="full")
     s.add_argument("--prior-error", type=_pair, default=(1.0, 10.0), metavar="M,DEG")
     s.add_argument("--no-prior", action="store_true")
-    s.add_argument("--format", choices=["npz", "las", "ply", "e57"], default="npz")
+    s.add_argument("--format", choices=["npz", "las", "ply", "e57", "e57-multi"], default="npz",
+                   help="e57-multi: one E57 holding every scan with its pose (tilt, rough heading and "
+                   "position from --prior-error), as scanner software exports a day")
+    s.add_argument("--project-frame", action="store_true",
+                   help="las/ply points in a UTM-like project frame, each scan's pose in campaign.yaml")
     s.add_argument("--tilt", type=_pair, default=None, metavar="ROLL,PITCH", help="max scanner tilt (deg)")
     s.add_argument("--site", choices=["forest", "parking-lot", "corridor"], default="forest",
                    help="the thesis's sites (spec 10.1): forest plot, parking lot (environment outdoor) "
@@ -86,6 +90,16 @@ def _parser() -> argparse.ArgumentParser:
     u.add_argument("--port", type=int, default=3000)
     u.add_argument("--host", default="127.0.0.1")
 
+    i = command("init", "write a campaign.yaml for a folder of scan files or a multi-scan E57")
+    i.add_argument("source", type=Path, metavar="FOLDER_OR_E57")
+    i.add_argument("--out", type=Path, default=None, help="campaign folder (default: the folder / the E57's)")
+    i.add_argument("--force", action="store_true", help="replace an existing campaign.yaml")
+
+    nb = command("notebooks", "open the notebooks under notebooks/ in Jupyter Lab on a campaign")
+    nb.add_argument("campaign", type=Path)
+    nb.add_argument("--port", type=int, default=None, help="Jupyter Lab's port (default: its own, 8888)")
+    nb.add_argument("--no-browser", action="store_true", help="print the address; do not open a browser")
+
     e = command("explore", "plan and simulate a whole survey (next-best-view)")
     e.add_argument("out", type=Path)
     e.add_argument("--plot-size", type=float, default=40.0)
@@ -105,7 +119,11 @@ def _say(args, text: str) -> None:
 
 def cmd_simulate(args) -> int:
     from forestmap_assets.sim import simulate_campaign
+    from forestmap_assets.sim.scanner_exports import pack_e57, place_in_project_frame
 
+    multi = args.format == "e57-multi"
+    if args.project_frame and args.format not in ("las", "ply"):
+        raise UsageError("--project-frame: only with --format las or ply")
     out = simulate_campaign(
         args.out,
         scans=args.scans,
@@ -115,15 +133,38 @@ def cmd_simulate(args) -> int:
         resolution=args.resolution,
         prior_error=args.prior_error,
         no_prior=args.no_prior,
-        fmt=args.format,
+        fmt="npz" if multi or args.project_frame else args.format,
         tilt_deg=args.tilt,
         progress=lambda m: _say(args, m),
         site=args.site,
         site_kwargs={"people": args.people} if args.people else None,
         scanner_kwargs={"colour": True} if args.colour else None,
     )
+    if multi:
+        path = pack_e57(out, prior_error=args.prior_error, seed=args.seed, with_prior=not args.no_prior)
+        _say(args, f"scans packed into {path} with their poses")
+    elif args.project_frame:
+        place_in_project_frame(out, args.format)
+        _say(args, f"scans written as {args.format} in a project frame, poses in campaign.yaml")
     if args.quiet:
         print(out)
+    return 0
+
+
+def cmd_init(args) -> int:
+    from forestmap_assets.io.campaign_init import init_campaign
+
+    manifest, found = init_campaign(args.source, args.out, force=args.force)
+    files = sorted({f.path for f in found})
+    _say(args, f"found {len(found)} scans in {len(files)} file{'s' if len(files) != 1 else ''}:")
+    for f in found:
+        where = f.path + (f"  (E57 scan {f.e57_scan})" if f.e57_scan is not None else "")
+        points = f", {f.points} points" if f.points is not None else ""
+        _say(args, f"  {f.id}: {where}{points}" + "".join(f"; {n}" for n in f.notes))
+    _say(args, f"wrote {manifest} (check environment: and the ids, then: forestmap run "
+         f"{manifest.parent})")
+    if args.quiet:
+        print(manifest)
     return 0
 
 
@@ -139,7 +180,7 @@ def cmd_run(args) -> int:
                                workers=args.workers, dask_address=args.dask_address)
     if summary.not_built:
         _say(args, f"not yet built in this version of forestmap: {', '.join(summary.not_built)}")
-    if summary.failures:
+    if any(scan is None for _, scan, _ in summary.failures):  # a campaign-level stage failed
         stage, scan, reason = summary.failures[0]
         where = f"{stage}[{scan}]" if scan else stage
         more = f" (and {len(summary.failures) - 1} more failures)" if len(summary.failures) > 1 else ""
@@ -147,7 +188,7 @@ def cmd_run(args) -> int:
     out = args.out or summary.campaign.root / "outputs"
     if summary.not_built:
         print(f"materialised what exists in {summary.seconds:.1f} s; no exports written to {out} yet")
-        return 0
+        return _left_out(summary)
     from forestmap_assets.orchestration.timings import stage_timings_or_note
     from forestmap_assets.outputs.exports import write_exports
 
@@ -162,7 +203,21 @@ def cmd_run(args) -> int:
 
     _say(args, f"asset store: {default_store_url()}; run history: {os.environ.get('DAGSTER_HOME')} (forestmap ui)")
     _say(args, f"done in {summary.seconds:.1f} s")
-    return 0
+    return _left_out(summary)
+
+
+def _left_out(summary) -> int:
+    """Exit code of a run that wrote its outputs: 3, with one line on standard error naming the
+    scan and its file, when it left a scan out (unreadable or damaged file; DESIGN section 3)."""
+    left = summary.left_out
+    if not left:
+        return 0
+    scan, reason = next(iter(left.items()))
+    what = ("not updated (outputs use its earlier results)" if scan in summary.kept_earlier
+            else "left out of the outputs")
+    more = f" (also left out: {', '.join(list(left)[1:])})" if len(left) > 1 else ""
+    print(f"forestmap: scan {scan} {what}: {reason}{more}", file=sys.stderr)
+    return 3
 
 
 def cmd_solve(args) -> int:
@@ -204,6 +259,21 @@ def cmd_ui(args) -> int:
     return subprocess.call(webserver_command(args.host, args.port, dev=True))
 
 
+def cmd_notebooks(args) -> int:
+    from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.orchestration import notebook
+
+    campaign = load_campaign(args.campaign)  # a clear error for a folder that is no campaign
+    if not notebook.NOTEBOOKS.is_dir():
+        raise UsageError(f"no notebooks folder at {notebook.NOTEBOOKS} (it comes with the repository)")
+    if not notebook.jupyterlab_installed():
+        raise UsageError(notebook.INSTALL_HINT)
+    argv, env, cwd = notebook.lab_command(campaign.root, port=args.port, no_browser=args.no_browser)
+    _say(args, f"Jupyter Lab on {cwd} with {notebook.CAMPAIGN_VARIABLE}={env[notebook.CAMPAIGN_VARIABLE]} "
+               "(Ctrl-C stops it)")
+    return notebook.launch(argv, env, cwd)
+
+
 def cmd_explore(args) -> int:
     from forestmap_assets.explore.planned_survey import explore
 
@@ -226,6 +296,8 @@ COMMANDS = {
     "solve": cmd_solve,
     "status": cmd_status,
     "ui": cmd_ui,
+    "init": cmd_init,
+    "notebooks": cmd_notebooks,
     "explore": cmd_explore,
 }
 

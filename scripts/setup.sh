@@ -1,20 +1,43 @@
 #!/usr/bin/env bash
 # Set up forestmap on a fresh machine: the system libraries open3d and off-screen VTK need
-# (installed with apt only when missing), then a virtual environment with forestmap in it.
+# (installed with apt, as root or through sudo, only when missing), then a virtual environment
+# .venv with forestmap and its dev extra (tests, ruff, Jupyter Lab for notebooks/) in it.
+#
+#   bash scripts/setup.sh           install what is missing; one line per thing it installs
+#   bash scripts/setup.sh --check   one line per system library (found / missing); installs
+#                                   nothing and exits 0
 set -euo pipefail
 cd "$(dirname "$0")/.."
-need=()
-have() { ldconfig -p 2>/dev/null | grep -q "$1"; }
-have 'libusb-1.0.so.0' || need+=(libusb-1.0-0)        # open3d
-have 'libEGL.so.1' || need+=(libegl1 libgl1-mesa-dri)  # pyvista/VTK off-screen rendering
-if [ ${#need[@]} -gt 0 ]; then
-  echo "installing ${need[*]} with apt..."
-  if [ "$(id -u)" = 0 ]; then SUDO=""; elif command -v sudo >/dev/null; then SUDO="sudo"; else
-    echo "setup: ${need[*]} missing and neither root nor sudo is available" >&2; exit 1; fi
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need[@]}" >/dev/null
+# shellcheck source=scripts/system_libs.sh
+source scripts/system_libs.sh
+
+case "${1:-}" in
+  "") ;;
+  --check) check_system_libs; exit 0 ;;
+  -h | --help) echo "usage: bash scripts/setup.sh [--check]"; exit 0 ;;
+  *) echo "setup: unknown option '$1' (usage: bash scripts/setup.sh [--check])" >&2; exit 2 ;;
+esac
+
+check_system_libs >/dev/null  # sets MISSING_PACKAGES
+if [ ${#MISSING_PACKAGES[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ]; then SUDO=(); elif command -v sudo >/dev/null; then SUDO=(sudo); else
+    echo "setup: system packages ${MISSING_PACKAGES[*]} are missing and neither root nor sudo is" \
+         "available; ask an administrator to install them (bash scripts/setup.sh --check lists" \
+         "the libraries)" >&2
+    exit 1
+  fi
+  for package in "${MISSING_PACKAGES[@]}"; do echo "setup: installing $package (apt)"; done
+  "${SUDO[@]}" apt-get update -qq
+  # env: sudo drops the caller's environment, so DEBIAN_FRONTEND goes in through env
+  "${SUDO[@]}" env DEBIAN_FRONTEND=noninteractive \
+    apt-get install -y -qq "${MISSING_PACKAGES[@]}" >/dev/null
 fi
-[ -x .venv/bin/python ] || python3 -m venv .venv
+if [ ! -x .venv/bin/python ]; then
+  echo "setup: creating the virtual environment $(pwd)/.venv"
+  python3 -m venv .venv
+fi
+echo "setup: installing the latest pip into .venv"
 .venv/bin/python -m pip install -q --upgrade pip
+echo "setup: installing forestmap (editable, with its dev extra) into .venv"
 .venv/bin/python -m pip install -q -e ".[dev]"
 echo "forestmap installed in $(pwd)/.venv"

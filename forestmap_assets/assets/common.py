@@ -27,7 +27,7 @@ from forestmap_assets.params.men import ExplorationConfig, OcclusionConfig
 
 # Bump a stage's number when its code changes meaning; the parameter hash is appended.
 CODE_VERSIONS: dict[str, str] = {
-    "range_images": "1",
+    "range_images": "2",
     "segments": "1",
     "circle_models": "2",
     "cylinder_segments": "2",
@@ -40,7 +40,7 @@ CODE_VERSIONS: dict[str, str] = {
     "optimal_map": "3",
     "residual_checks": "1",
     "integrated_map": "2",
-    "tree_list": "3",
+    "tree_list": "4",
 }
 
 # Which parameter sections each stage reads (their hash enters the code version).

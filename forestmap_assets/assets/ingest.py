@@ -33,7 +33,8 @@ def read_campaign_scan(campaign: Campaign, scan_id: str) -> RangeImage:
         entry = campaign.scan(scan_id)
     except KeyError:
         raise ValueError(f"scan {scan_id!r} is not listed in {campaign.root / 'campaign.yaml'}") from None
-    return read_scan(entry.path, angular_step_deg=campaign.angular_step_deg, tilt_deg=entry.tilt_deg)
+    return read_scan(entry.path, angular_step_deg=campaign.angular_step_deg, tilt_deg=entry.tilt_deg,
+                     scan_index=entry.e57_scan, to_scanner=entry.to_scanner)
 
 
 def ingest_assets(campaign: Campaign) -> list:

@@ -177,14 +177,17 @@ def mapping_assets(campaign: Campaign) -> list:
         group_name="map",
         code_version=code_version(campaign, "tree_list"),
         description="One row per physical tree, cylinders of all scans merged: stem position at "
-        "breast height (1.3 m above the ground under the stem), ground z, DBH (forestmap's step "
-        "beyond the thesis; core/trees.py).",
+        "breast height (1.3 m above the ground under the stem), ground z, DBH, and dbh_note: how "
+        "a DBH not measured at breast height was obtained or why there is none (forestmap's step "
+        "beyond the thesis; core/mapping/trees.py).",
     )
     def tree_list(context, integrated_map):
         grid = elevation_from_table(integrated_map["elevation"])
         trees, _ = merge_trees(integrated_map["cylinders"], grid)
         dbh = trees["dbh_m"].dropna()
+        noted = trees["dbh_note"].astype(bool)
         meta = {"trees": len(trees), "with_dbh": int(len(dbh)),
+                "dbh_with_note": int((noted & trees["dbh_m"].notna()).sum()),
                 "median_dbh_m": round(float(dbh.median()), 3) if len(dbh) else 0.0,
                 "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum()),
                 "dbh_histogram": png_metadata(dbh_histogram(trees, title=f"{campaign.name}: DBH of {len(dbh)} trees"))}

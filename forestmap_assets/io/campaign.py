@@ -16,14 +16,18 @@ from typing import Any
 
 import yaml
 
+from forestmap_assets.io.scan_poses import PoseError, e57_poses, parse_pose
 from forestmap_assets.params import Params, ParamsError, resolve_params
 
 MANIFEST = "campaign.yaml"
 SCAN_ID = re.compile(r"^[A-Za-z0-9_-]+$")
 SCAN_EXTENSIONS = (".npz", ".e57", ".las", ".laz", ".ply", ".pcd", ".xyz", ".txt", ".csv")
 
-_TOP_KEYS = {"name", "environment", "scans", "pairs", "search", "params", "sensor"}
-_SCAN_KEYS = {"id", "path", "tilt_deg", "a_priori"}
+_TOP_KEYS = {"name", "environment", "scans", "pairs", "search", "params", "sensor",
+             "a_priori_from_file"}
+_SCAN_KEYS = {"id", "path", "tilt_deg", "a_priori", "pose", "e57_scan", "a_priori_from_file"}
+_POSE_KEYS = {"x", "y", "z", "roll_deg", "pitch_deg", "heading_deg"}
+POINT_CLOUD_EXTENSIONS = (".las", ".laz", ".ply", ".pcd", ".xyz", ".txt", ".csv")
 _PAIR_KEYS = {"scan", "reference", "a_priori", "search"}
 _SEARCH_KEYS = {"xy_m", "z_m", "heading_deg"}
 _SENSOR_KEYS = {"angular_step_deg"}
@@ -41,6 +45,23 @@ class ScanEntry:
     path: Path
     tilt_deg: tuple[float, float] = (0.0, 0.0)
     a_priori: tuple[float, float, float, float] | None = None
+    e57_scan: int | None = None  # data3D index in a multi-scan E57
+    pose: tuple[tuple[float, ...], ...] | None = None  # 4x4 scanner -> file frame (``pose:``)
+    prior_source: str | None = None  # where ``a_priori`` came from: campaign.yaml, pose, e57 pose
+
+    @property
+    def to_scanner(self):
+        """The 4x4 file-to-scanner transform that moves a project-frame file's points to the
+        scanner's own frame before projection (None: the file is in the scanner frame)."""
+        if self.pose is None:
+            return None
+        import numpy as np
+
+        m = np.asarray(self.pose, dtype=np.float64)
+        inv = np.eye(4)
+        inv[:3, :3] = m[:3, :3].T
+        inv[:3, 3] = -m[:3, :3].T @ m[:3, 3]
+        return inv
 
 
 @dataclass(frozen=True)
@@ -73,6 +94,17 @@ class Campaign:
         return key if key and not key[0].isdigit() else f"c_{key}"
 
     @property
+    def prior_note(self) -> str:
+        """Where the a priori scan poses come from when the files gave them ('' otherwise)."""
+        counts: dict[str, int] = {}
+        for s in self.scans:
+            if s.prior_source in ("e57 pose", "pose"):
+                counts[s.prior_source] = counts.get(s.prior_source, 0) + 1
+        said = {"e57 pose": "the E57 file's scan poses", "pose": "the scans' pose: entries"}
+        parts = [f"{said[k]} ({n} scans)" for k, n in counts.items()]
+        return f"; a priori poses from {' and '.join(parts)}" if parts else ""
+
+    @property
     def scan_ids(self) -> list[str]:
         return [s.id for s in self.scans]
 
@@ -89,7 +121,10 @@ class Campaign:
         with open(entry.path, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
-        h.update(repr((entry.tilt_deg, self.angular_step_deg)).encode())
+        key: tuple = (entry.tilt_deg, self.angular_step_deg)
+        if entry.pose is not None or entry.e57_scan is not None:
+            key += (entry.pose, entry.e57_scan)
+        h.update(repr(key).encode())
         return h.hexdigest()[:20]
 
 
@@ -123,6 +158,74 @@ def _unknown(keys: Any, allowed: set[str], where: str, prefix: str) -> None:
         raise _fail(where, f"{prefix}{extra[0]}: unknown key (allowed: {', '.join(sorted(allowed))})")
 
 
+def _scan_entry(raw: dict, sid: str, path: Path, where: str, at: str, from_file: bool,
+                e57_cache: dict) -> ScanEntry:
+    """The tilt, a priori pose, E57 index and project-frame pose of one scan entry: what
+    ``campaign.yaml`` says first, then what the file's pose says (E57, or the entry's ``pose``)."""
+    ext = path.suffix.lower()
+    tilt_raw, prior_raw = raw.get("tilt_deg"), raw.get("a_priori")
+    tilt = _numbers(tilt_raw, 2, where, f"{at}.tilt_deg") if tilt_raw is not None else None
+    prior = _numbers(prior_raw, 4, where, f"{at}.a_priori") if prior_raw is not None else None
+    source = "campaign.yaml" if prior is not None else None
+    use_file = raw.get("a_priori_from_file", from_file)
+    if not isinstance(use_file, bool):
+        raise _fail(where, f"{at}.a_priori_from_file: expected true or false, got {use_file!r}")
+    e57_scan, matrix, file_pose = raw.get("e57_scan"), None, None
+    if e57_scan is not None:
+        if ext != ".e57":
+            raise _fail(where, f"{at}.e57_scan: only for .e57 files, not {ext}")
+        if isinstance(e57_scan, bool) or not isinstance(e57_scan, int) or e57_scan < 0:
+            raise _fail(where, f"{at}.e57_scan: expected a scan index 0, 1, 2, ..., got {e57_scan!r}")
+    if ext == ".e57":
+        if path not in e57_cache:
+            e57_cache[path] = e57_poses(path)
+        listed = e57_cache[path]
+        if listed is not None:
+            if e57_scan is None and len(listed) > 1:
+                raise _fail(where, f"{at}.e57_scan: {path.name} holds {len(listed)} scans; give "
+                            f"e57_scan: 0..{len(listed) - 1} (forestmap init writes one entry each)")
+            if e57_scan is not None and e57_scan >= len(listed):
+                raise _fail(where, f"{at}.e57_scan: {e57_scan} out of range ({path.name} holds "
+                            f"{len(listed)} scans)")
+            file_pose = listed[e57_scan or 0][1]
+    if "pose" in raw:
+        if ext not in POINT_CLOUD_EXTENSIONS:
+            raise _fail(where, f"{at}.pose: only for point-cloud files ({' '.join(POINT_CLOUD_EXTENSIONS)}); "
+                        f"{ext} scans are in the scanner's frame")
+        try:
+            file_pose = parse_pose(raw["pose"])
+        except PoseError as exc:
+            field_name = f"{at}.pose.{exc.key}" if exc.key else f"{at}.pose"
+            raise _fail(where, f"{field_name}: {exc}") from None
+        matrix = tuple(tuple(float(v) for v in row) for row in file_pose.matrix)
+        use_file = True  # the campaign's own pose: its position is the a priori pose
+    if file_pose is not None:
+        if tilt is None:
+            tilt = file_pose.tilt_deg
+        if prior is None and use_file:
+            prior = file_pose.a_priori
+            source = "pose" if matrix is not None else "e57 pose"
+    tilt = tilt if tilt is not None else (0.0, 0.0)
+    return ScanEntry(sid, path, (tilt[0], tilt[1]), prior, e57_scan, matrix, source)  # type: ignore[arg-type]
+
+
+def _drop_placeholder_poses(scans: list[ScanEntry]) -> list[ScanEntry]:
+    """An E57 whose scans all stand at one position was not registered by its software (identity
+    or tilt-only poses): keep the tilt, drop the positions as a priori poses."""
+    from dataclasses import replace
+
+    by_file: dict[Path, list[ScanEntry]] = {}
+    for s in scans:
+        if s.prior_source == "e57 pose":
+            by_file.setdefault(s.path, []).append(s)
+    drop = set()
+    for group in by_file.values():
+        xyz = [s.a_priori[:3] for s in group if s.a_priori is not None]
+        if len(group) > 1 and max(math.dist(xyz[0], p) for p in xyz) < 0.01:
+            drop.update(s.id for s in group)
+    return [replace(s, a_priori=None, prior_source=None) if s.id in drop else s for s in scans]
+
+
 def load_campaign(folder: str | Path) -> Campaign:
     """Read and validate ``folder/campaign.yaml``; raise :class:`CampaignError` on any problem."""
     root = Path(folder).expanduser().resolve()
@@ -152,6 +255,10 @@ def load_campaign(folder: str | Path) -> Campaign:
     raw_scans = doc.get("scans")
     if not isinstance(raw_scans, list) or not raw_scans:
         raise _fail(where, "scans: expected a non-empty list of scans")
+    from_file = doc.get("a_priori_from_file", True)
+    if not isinstance(from_file, bool):
+        raise _fail(where, f"a_priori_from_file: expected true or false, got {from_file!r}")
+    e57_cache: dict[Path, list | None] = {}
     scans: list[ScanEntry] = []
     seen: set[str] = set()
     for i, raw in enumerate(raw_scans):
@@ -175,10 +282,9 @@ def load_campaign(folder: str | Path) -> Campaign:
             raise _fail(where, f"{at}.path: unsupported scan format {path.suffix!r} ({', '.join(SCAN_EXTENSIONS)})")
         if not path.is_file():
             raise _fail(where, f"{at}.path: file not found: {rel}")
-        tilt = _numbers(raw.get("tilt_deg", [0.0, 0.0]), 2, where, f"{at}.tilt_deg")
-        prior = raw.get("a_priori")
-        prior_t = _numbers(prior, 4, where, f"{at}.a_priori") if prior is not None else None
-        scans.append(ScanEntry(sid, path, (tilt[0], tilt[1]), prior_t))  # type: ignore[arg-type]
+        scans.append(_scan_entry(raw, sid, path, where, at, from_file, e57_cache))
+
+    scans = _drop_placeholder_poses(scans)
 
     pairs: list[PairEntry] = []
     raw_pairs = doc.get("pairs") or []

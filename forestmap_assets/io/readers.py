@@ -47,6 +47,7 @@ def read_scan(
     angular_step_deg: float | tuple[float, float] | None = None,
     tilt_deg: tuple[float, float] = (0.0, 0.0),
     scan_index: int | None = None,
+    to_scanner=None,
 ) -> RangeImage:
     """Read one scan file (DESIGN section 2) as an organised range image (spec 1.2).
 
@@ -54,7 +55,9 @@ def read_scan(
     in the scanner's own frame; unorganised clouds are projected at ``angular_step_deg``
     (scalar or (az, el); None = estimated from the data). ``tilt_deg`` = measured (roll,
     pitch) attached to the image for levelling. ``scan_index`` picks a scan of a multi-scan
-    E57 (default: the file must hold exactly one). rgb is kept where present; NaN marks
+    E57 (default: the file must hold exactly one). ``to_scanner``: the 4x4 transform that moves
+    a point-cloud file's points from its project frame to the scanner's own frame before the
+    projection (a scan entry's ``pose``, inverted). rgb is kept where present; NaN marks
     pixels without a return. Raises :class:`ScanReadError` (one line: ``<file>: <reason>``).
     """
     name = str(path)
@@ -75,7 +78,12 @@ def read_scan(
         raise ScanReadError(f"{name}: is a directory, not a scan file")
     if p.stat().st_size == 0:
         raise ScanReadError(f"{name}: empty file")
-    kwargs = {"scan_index": scan_index} if ext == ".e57" else {}
+    kwargs: dict = {"scan_index": scan_index} if ext == ".e57" else {}
+    if to_scanner is not None:
+        if ext in (".npz", ".e57"):
+            raise ScanReadError(f"{name}: a pose is only for point-cloud files; {ext} scans are "
+                                "in the scanner's frame")
+        kwargs["to_scanner"] = np.asarray(to_scanner, dtype=np.float64)
     try:
         image = _READERS[ext](p, angular_step_deg, **kwargs)
     except BadScan as exc:

@@ -46,6 +46,28 @@ def to_rgb8(values: np.ndarray, *, full_scale: float | None = None) -> np.ndarra
     return np.clip(np.rint(v * (255.0 / full_scale)), 0, 255).astype(np.uint8)
 
 
+def count_damage(header_count: int, held: int | str) -> str:
+    """The one-line damage of a file whose header's point count is not what it holds:
+    ``truncated: header says 5000 points, file holds 3012`` (``damaged: ...`` when it holds
+    more)."""
+    fewer = not isinstance(held, int) or held < header_count
+    kind = "truncated" if fewer else "damaged"
+    return f"{kind}: header says {header_count} points, file holds {held}"
+
+
+def count_words(path: Path, start: int) -> int:
+    """Whitespace-separated words of a text file from byte ``start`` on, read in blocks."""
+    words, inside = 0, False
+    with open(path, "rb") as f:
+        f.seek(start)
+        while block := f.read(1 << 22):
+            words += len(block.split())
+            if inside and not block[:1].isspace():
+                words -= 1  # one word split across two blocks
+            inside = not block[-1:].isspace()
+    return words
+
+
 def check_signature(path: Path, accepted: tuple[bytes, ...], what: str) -> None:
     with open(path, "rb") as f:
         head = f.read(max(len(s) for s in accepted))
@@ -58,8 +80,14 @@ def _project(
     rgb: np.ndarray | None,
     intensity: np.ndarray | None,
     angular_step_deg,
+    to_scanner=None,
 ) -> RangeImage:
+    """Spherical projection of a cloud about its scanner; ``to_scanner`` (4x4) first moves points
+    of a project-frame file into the scanner's frame, in float64 (map coordinates keep their mm)."""
     xyz = np.asarray(xyz, dtype=np.float64)
+    if to_scanner is not None:
+        m = np.asarray(to_scanner, dtype=np.float64)
+        xyz = xyz @ m[:3, :3].T + m[:3, 3]
     if xyz.shape[0] == 0:
         raise BadScan("no points")
     good = np.isfinite(xyz).all(1)

@@ -3,6 +3,7 @@ read as organised range images; unstructured ones are projected spherically."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -127,6 +128,52 @@ def _structured_image(
     return RangeImage(img.reshape(nr, nc), az_col, el_row, intensity=int_img, rgb=rgb_img)
 
 
+@dataclass(frozen=True)
+class E57Scan:
+    """One ``data3D`` entry of an E57 file: its index, name, point count, and its stored pose as
+    the 4x4 scanner-to-file transform (``None`` when the file stores none)."""
+
+    index: int
+    name: str
+    points: int
+    pose: np.ndarray | None
+    structured: bool
+
+
+def _pose(node) -> np.ndarray | None:
+    from forestmap_assets.core.geometry import quaternion_matrix
+
+    if not node.isDefined("pose"):
+        return None
+    pose = node["pose"]
+    m = np.eye(4)
+    if pose.isDefined("rotation"):
+        rot = pose["rotation"]
+        m[:3, :3] = quaternion_matrix(*(float(rot[k].value()) for k in "wxyz"))
+    if pose.isDefined("translation"):
+        tr = pose["translation"]
+        m[:3, 3] = [float(tr[k].value()) for k in "xyz"]
+    return m
+
+
+def e57_scans(path: str | Path) -> list[E57Scan]:
+    """The scans of an E57 file with their names and stored poses (header only, no points)."""
+    import pye57
+
+    path = Path(path)
+    check_signature(path, (b"ASTM-E57",), "an E57 file")
+    out = []
+    with pye57.E57(str(path)) as e57:
+        for i in range(e57.scan_count):
+            header = e57.get_header(i)
+            node = header.node
+            name = str(node["name"].value()) if node.isDefined("name") else f"scan {i}"
+            fields = set(header.point_fields)
+            out.append(E57Scan(i, name, int(header.point_count), _pose(node),
+                               {"rowIndex", "columnIndex"} <= fields))
+    return out
+
+
 def read_e57(path: Path, angular_step_deg, scan_index: int | None = None) -> RangeImage:
     import pye57
 
@@ -137,10 +184,11 @@ def read_e57(path: Path, angular_step_deg, scan_index: int | None = None) -> Ran
             raise BadScan("no scans in data3D")
         if scan_index is None:
             if count > 1:
-                raise BadScan(f"holds {count} scans; give scan_index (one scan per position)")
+                raise BadScan(f"holds {count} scans; give e57_scan: 0..{count - 1} in campaign.yaml "
+                              "(forestmap init writes one entry per scan)")
             scan_index = 0
         if not 0 <= scan_index < count:
-            raise BadScan(f"scan_index {scan_index} out of range (file holds {count} scans)")
+            raise BadScan(f"e57_scan {scan_index} out of range (file holds {count} scans)")
         header = e57.get_header(scan_index)
         fields = set(header.point_fields)
         n_points = header.point_count

@@ -35,7 +35,7 @@ def _is_number(tok: str) -> bool:
     return True
 
 
-def read_text(path: Path, angular_step_deg) -> RangeImage:
+def read_text(path: Path, angular_step_deg, to_scanner=None) -> RangeImage:
     import pandas as pd
 
     with open(path, "rb") as f:
@@ -90,6 +90,10 @@ def read_text(path: Path, angular_step_deg) -> RangeImage:
             cols.update(r=3, g=4, b=5)
         if ncol == 7:
             cols.update(r=4, g=5, b=6)
+    held = _cut_last_line(path, sep)
+    if held is not None and held < ncol:  # a cut file ends inside its last line
+        line = _data_line_number(path, skip, arr.shape[0] - 1)
+        raise BadScan(f"truncated: the last line ({line}) holds {held} of {ncol} values")
     xyz = arr[:, [cols["x"], cols["y"], cols["z"]]]
     missing = ~np.isfinite(xyz).all(1)
     if missing.any():
@@ -97,9 +101,27 @@ def read_text(path: Path, angular_step_deg) -> RangeImage:
         raise BadScan(f"line {line}: missing or non-finite x/y/z")
     rgb = None
     if {"r", "g", "b"} <= cols.keys():
-        rgb = to_rgb8(arr[:, [cols["r"], cols["g"], cols["b"]]])
+        raw = arr[:, [cols["r"], cols["g"], cols["b"]]]
+        missing = ~np.isfinite(raw).all(1)
+        if missing.any():
+            line = _data_line_number(path, skip, int(np.argmax(missing)))
+            raise BadScan(f"line {line}: missing or non-finite colour")
+        rgb = to_rgb8(raw)
     intensity = arr[:, cols["intensity"]].astype(np.float32) if "intensity" in cols else None
-    return _project(xyz, rgb, intensity, angular_step_deg)
+    return _project(xyz, rgb, intensity, angular_step_deg, to_scanner)
+
+
+def _cut_last_line(path: Path, sep: str | None) -> int | None:
+    """The number of values on the last line of a file that does not end with a line break
+    (where a cut file ends), else None."""
+    with open(path, "rb") as f:
+        size = f.seek(0, 2)
+        f.seek(max(size - (1 << 16), 0))
+        tail = f.read()
+    if not tail or tail[-1:] in (b"\n", b"\r"):
+        return None
+    last = tail.splitlines()[-1].decode("utf-8", errors="replace").strip()
+    return len([t for t in re.split(sep if sep else r"\s+", last) if t.strip()])
 
 
 def _data_line_number(path: Path, skip: int, data_row: int) -> int:

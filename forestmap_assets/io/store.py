@@ -175,6 +175,51 @@ def _read_bundle_dir(folder: str) -> dict[str, pd.DataFrame]:
         os.close(fd)
 
 
+CAMPAIGN_ROOT = "_campaign_root.txt"  # <store>/<campaign key>/: the folder owning the key
+
+
+def _store_id(store_url: str) -> str:
+    base = UPath(store_url)
+    return str(Path(base.path).resolve()) if _local(base) else str(base)
+
+
+def read_campaign_root(store_url: str, key: str) -> tuple[str, str] | None:
+    """``(campaign folder, store)`` recorded in the namespace ``key`` of the store by
+    :func:`write_campaign_root`, or None. The store differs from ``store_url`` when the store
+    was copied or moved since (its namespaces are then no longer shared with the original's)."""
+    try:
+        text = (UPath(store_url) / key / CAMPAIGN_ROOT).read_text()
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    root, store, *_ = [*text.splitlines(), "", ""]
+    return root.strip(), store.strip()
+
+
+def recorded_elsewhere(store_url: str, key: str, root: str | os.PathLike) -> str | None:
+    """The other campaign folder recorded as the owner of namespace ``key`` of this store,
+    or None (nothing recorded, this folder, or a record copied along with the store)."""
+    found = read_campaign_root(store_url, key)
+    if found is None or found[1] != _store_id(store_url):
+        return None
+    return None if found[0] == str(Path(root).resolve()) else found[0]
+
+
+def write_campaign_root(store_url: str, key: str, root: str | os.PathLike) -> None:
+    """Record ``root`` (a campaign folder) as the owner of namespace ``key`` of the store."""
+    if read_campaign_root(store_url, key) == (str(Path(root).resolve()), _store_id(store_url)):
+        return
+    marker = UPath(store_url) / key / CAMPAIGN_ROOT
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(marker)
+    try:
+        tmp.write_text(f"{Path(root).resolve()}\n{_store_id(store_url)}\n")
+        _move(tmp, marker)
+    except BaseException:
+        if tmp.exists():
+            tmp.unlink()
+        raise
+
+
 class ParquetIOManager(UPathIOManager):
     """Stores tables as ``.parquet`` and bundles as ``.bundle/`` folders, atomically."""
 

@@ -3,12 +3,15 @@
 The notebooks read their campaign folder from ``$FORESTMAP_CAMPAIGN`` and otherwise use the
 bundled sample ``data/sample`` (after the README's main command ``forestmap run data/sample``
 its assets are in the store). They read every stage's output straight from the asset store with
-:func:`~forestmap_assets.access.load_asset`.
+:func:`~forestmap_assets.access.load_asset`. ``forestmap notebooks CAMPAIGN`` starts Jupyter Lab
+in ``notebooks/`` with that variable set (:func:`lab_command`).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -17,13 +20,19 @@ from forestmap_assets.core.geometry import relative_pose
 from forestmap_assets.io.campaign import Campaign
 
 SAMPLE = Path("data") / "sample"
+CAMPAIGN_VARIABLE = "FORESTMAP_CAMPAIGN"
+NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
+INSTALL_HINT = (
+    "Jupyter Lab is not installed in this environment; install it with "
+    f"{Path(sys.executable).parent / 'pip'} install jupyterlab (or: bash scripts/setup.sh)"
+)
 
 
 def campaign_folder(default: str | os.PathLike | None = None) -> Path:
     """``$FORESTMAP_CAMPAIGN`` if set; else ``default``; else the repository's ``data/sample``,
     looked for from the working directory upwards (a notebook runs in ``notebooks/``) and next
     to the installed package."""
-    env = os.environ.get("FORESTMAP_CAMPAIGN")
+    env = os.environ.get(CAMPAIGN_VARIABLE)
     if env:
         return Path(env).expanduser().resolve()
     if default is not None:
@@ -36,6 +45,43 @@ def campaign_folder(default: str | os.PathLike | None = None) -> Path:
         "no campaign: set FORESTMAP_CAMPAIGN to a campaign folder, or run the README's main "
         "command (forestmap run data/sample) from the repository"
     )
+
+
+def jupyterlab_installed() -> bool:
+    """Whether Jupyter Lab can be started from this Python environment."""
+    return importlib.util.find_spec("jupyterlab") is not None
+
+
+def lab_command(
+    campaign: str | os.PathLike, port: int | None = None, no_browser: bool = False
+) -> tuple[list[str], dict[str, str], Path]:
+    """Command line, environment and working folder that start Jupyter Lab on the notebooks
+    under ``notebooks/`` for ``campaign``: this interpreter's ``-m jupyterlab`` (with
+    ``--allow-root`` when run as root), with ``$FORESTMAP_CAMPAIGN`` set to the campaign
+    folder's absolute path."""
+    argv = [sys.executable, "-m", "jupyterlab", f"--ServerApp.root_dir={NOTEBOOKS}"]
+    if port is not None:
+        argv.append(f"--port={port}")
+    if no_browser:
+        argv.append("--no-browser")
+    if hasattr(os, "geteuid") and os.geteuid() == 0:
+        argv.append("--allow-root")  # containers run as root; Jupyter refuses it otherwise
+    env = {**os.environ, CAMPAIGN_VARIABLE: str(Path(campaign).expanduser().resolve())}
+    return argv, env, NOTEBOOKS
+
+
+def launch(argv: list[str], env: dict[str, str], cwd: Path) -> int:
+    """Run ``argv`` in ``cwd`` with ``env`` until it ends; its exit status. A Ctrl-C on the
+    terminal reaches Jupyter Lab too, which shuts itself down (kernels included), so this
+    waits for it rather than killing it."""
+    import subprocess
+
+    proc = subprocess.Popen(argv, env=env, cwd=cwd)
+    while True:
+        try:
+            return proc.wait()
+        except KeyboardInterrupt:
+            continue
 
 
 def truth_poses(campaign: Campaign) -> pd.DataFrame | None:

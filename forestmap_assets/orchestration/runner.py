@@ -37,11 +37,14 @@ from forestmap_assets.io.campaign import Campaign, load_campaign
 from forestmap_assets.io.store import default_store_url
 from forestmap_assets.orchestration.executors import dask_cluster
 from forestmap_assets.orchestration.instance import get_instance, sync_partitions
+from forestmap_assets.orchestration.namespace import claim_campaign_name
 from forestmap_assets.orchestration.status import (
     campaign_stages,
     changed_scan_files,
     direct_states,
+    materialised_before,
     observe_scan_files,
+    safe_subset,
     stage_parents,
 )
 from forestmap_assets.orchestration.workspace import EXECUTORS, build_definitions
@@ -79,6 +82,18 @@ class RunSummary:
     run_ids: list[str] = field(default_factory=list)
     not_built: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    kept_earlier: set[str] = field(default_factory=set)  # failed scans whose older results stand
+
+    @property
+    def left_out(self) -> dict[str, str]:
+        """Scans this run could not process (unreadable or damaged file, or a failed per-scan
+        stage), each with its first failure: the campaign-level stages ran without them, or,
+        for those in ``kept_earlier``, with their results from an earlier run."""
+        out: dict[str, str] = {}
+        for stage, scan, reason in self.failures:
+            if scan is not None and scan not in out:
+                out[scan] = reason if stage == "range_images" else f"{stage} failed: {reason}"
+        return out
 
 
 @contextlib.contextmanager
@@ -330,29 +345,6 @@ def _step_failure_reason(event) -> str:
     return (text or "failed").strip().splitlines()[0]
 
 
-def _safe_subset(candidates: set[str], parents: dict[str, list[str]]) -> set[str]:
-    """Candidates that may run in one wave: drop a stage that reads a non-candidate stage which
-    itself lies downstream of a candidate (it would read an input about to change)."""
-
-    def downstream_of_candidate(stage: str, seen: set[str]) -> bool:
-        for p in parents.get(stage, []):
-            if p in chosen or (p not in seen and downstream_of_candidate(p, seen | {p})):
-                return True
-        return False
-
-    chosen = set(candidates)
-    changed = True
-    while changed:
-        changed = False
-        for stage in sorted(chosen):
-            if any(
-                p not in chosen and downstream_of_candidate(p, {p}) for p in parents.get(stage, [])
-            ):
-                chosen.discard(stage)
-                changed = True
-    return chosen
-
-
 def run_campaign(
     folder: str | Path,
     *,
@@ -380,6 +372,7 @@ def run_campaign(
     instance = instance or get_instance()
     store_url = store_url or default_store_url()
     workers = workers or os.cpu_count() or 2
+    claim_campaign_name(campaign, store_url, record=False)  # fail before any work
     defs = build_definitions([campaign], store_url, executor=executor)
     # resolve definitions against this instance (not a stale one a caller left in the context)
     with set_defs_state_storage(instance.defs_state_storage):
@@ -418,6 +411,7 @@ def _run(
     level_stages = [s for s, g in stages_all if g == "campaign"]
     with contextlib.ExitStack() as stack:
         stack.enter_context(campaign_lock(instance, campaign, progress))
+        claim_campaign_name(campaign, store_url)  # under the lock: one folder records itself
         if executor == "dask":
             dask_address = stack.enter_context(dask_cluster(dask_address, workers, progress))
         session = _Session(
@@ -455,7 +449,7 @@ def _run(
             scans: dict[str, list[str]] = {}
             for sid in campaign.scan_ids:
                 wanted = {s for s in scan_stages if (s, sid) in due}
-                chosen = _safe_subset(
+                chosen = safe_subset(
                     wanted,
                     {s: [p for p in parents[s] if granularity[p] == "scan"] for s in scan_stages},
                 )
@@ -465,13 +459,14 @@ def _run(
                 fresh = sum(1 for sid in campaign.scan_ids if sid not in scans)
                 progress(
                     f"{campaign.name}: {len(campaign.scan_ids)} scans, {len(scans)} to process, {fresh} up to date"
+                    + campaign.prior_note
                 )
                 first = False
             if scans:
                 attempted |= {(s, sid) for sid, stages in scans.items() for s in stages}
                 session.run_scans(scans)
                 continue
-            level = _safe_subset(
+            level = safe_subset(
                 {s for s in level_stages if (s, None) in due},
                 {s: [p for p in parents[s] if granularity[p] == "campaign"] for s in level_stages},
             )
@@ -481,5 +476,8 @@ def _run(
             attempted |= {(s, None) for s in stages}
             progress(f"  campaign: {', '.join(stages)}")
             session.execute("campaign", stages, None, 1)
+    for stage, scan, _ in summary.failures:
+        if scan is not None and materialised_before(instance, campaign, stage, scan):
+            summary.kept_earlier.add(scan)
     summary.seconds = time.perf_counter() - start
     return summary

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from dagster import AssetObservation, DagsterInstance, Definitions
+from dagster import AssetObservation, AssetRecordsFilter, DagsterInstance, Definitions
 from dagster._core.asset_graph_view.asset_graph_view import AssetGraphView, TemporalContext
 from dagster._core.definitions.data_version import (
     DATA_VERSION_TAG,
@@ -161,3 +161,34 @@ def stage_states(
         else:
             out.append(StageState(stage, g, True, effective[(stage, None)]))
     return out
+
+
+def materialised_before(instance: DagsterInstance, campaign: Campaign, stage: str, scan: str) -> bool:
+    """Whether ``stage`` of ``scan`` was ever materialised (a failed scan's earlier results)."""
+    records = instance.fetch_materializations(
+        AssetRecordsFilter(asset_key=asset_key(campaign, stage), asset_partitions=[scan]), limit=1
+    ).records
+    return bool(records)
+
+
+def safe_subset(candidates: set[str], parents: dict[str, list[str]]) -> set[str]:
+    """Candidates that may run in one wave: drop a stage that reads a non-candidate stage which
+    itself lies downstream of a candidate (it would read an input about to change)."""
+
+    def downstream_of_candidate(stage: str, seen: set[str]) -> bool:
+        for p in parents.get(stage, []):
+            if p in chosen or (p not in seen and downstream_of_candidate(p, seen | {p})):
+                return True
+        return False
+
+    chosen = set(candidates)
+    changed = True
+    while changed:
+        changed = False
+        for stage in sorted(chosen):
+            if any(
+                p not in chosen and downstream_of_candidate(p, {p}) for p in parents.get(stage, [])
+            ):
+                chosen.discard(stage)
+                changed = True
+    return chosen

@@ -16,7 +16,7 @@ from dagster import Definitions, in_process_executor, multiprocess_executor
 
 from forestmap_assets.assets import campaign_assets, campaign_jobs
 from forestmap_assets.io.campaign import MANIFEST, Campaign, CampaignError, load_campaign
-from forestmap_assets.io.store import ParquetStore
+from forestmap_assets.io.store import ParquetStore, default_store_url, read_campaign_root
 
 REPO_DATA = Path(__file__).resolve().parents[2] / "data"
 EXECUTORS = ("in_process", "multiprocess", "dask")
@@ -56,20 +56,37 @@ def executor_def(name: str | None):
     raise ValueError(f"--executor: {name!r} is not one of {', '.join(EXECUTORS)}")
 
 
-def unique_campaigns(campaigns: Iterable[Campaign]) -> list[Campaign]:
-    """Campaigns with distinct keys; a later campaign reusing a key is left out with a warning."""
-    keys: dict[str, Path] = {}
+def unique_campaigns(campaigns: Iterable[Campaign], store_url: str | None = None) -> list[Campaign]:
+    """Campaigns with distinct keys (a key is a namespace of the asset store and of the run
+    history): of two folders with the same key, the one the store records as its owner
+    (:func:`forestmap_assets.orchestration.runner.claim_campaign_name`), else the first, is
+    kept; the other is left out with a one-line warning naming both folders."""
+    campaigns = list(campaigns)
+    groups: dict[str, list[Campaign]] = {}
+    for campaign in campaigns:
+        groups.setdefault(campaign.key, []).append(campaign)
+    kept: dict[str, Campaign] = {}
+    for key, group in groups.items():
+        kept[key] = group[0]
+        if len(group) > 1:
+            try:
+                found = read_campaign_root(store_url or default_store_url(), key)
+            except Exception:  # an unreachable store: keep the first
+                found = None
+            owner = [c for c in group if found and str(c.root.resolve()) == found[0]]
+            kept[key] = owner[0] if owner else group[0]
     out = []
     for campaign in campaigns:
-        if campaign.key in keys:
-            warnings.warn(
-                f"{campaign.root / MANIFEST}: name: campaign name {campaign.name!r} is already used "
-                f"by {keys[campaign.key]}; this campaign is left out",
-                stacklevel=2,
-            )
+        keep = kept[campaign.key]
+        if campaign is keep:
+            out.append(campaign)
             continue
-        keys[campaign.key] = campaign.root
-        out.append(campaign)
+        same = "" if campaign.name == keep.name else f" (store key {campaign.key!r} of {keep.name!r})"
+        warnings.warn(
+            f"{campaign.root / MANIFEST}: name: campaign name {campaign.name!r}{same} is already used "
+            f"by {keep.root}; this campaign is left out: give it another name: in its {MANIFEST}",
+            stacklevel=2,
+        )
     return out
 
 
@@ -86,7 +103,7 @@ def build_definitions(
     run config); ``extras(campaigns, scan_jobs)`` adds jobs, sensors and schedules (the
     automation: :func:`forestmap_assets.orchestration.automation.automated_definitions`).
     """
-    campaigns = unique_campaigns(campaigns)
+    campaigns = unique_campaigns(campaigns, store_url)
     assets: list = []
     jobs: list = []
     for campaign in campaigns:

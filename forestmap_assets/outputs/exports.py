@@ -70,6 +70,9 @@ RESIDUAL_COLUMNS = [
     "verdict",
 ]
 TREE_COLUMNS = ["tree_id", "x", "y", "z", "dbh_m", "n_scans", "n_cylinders", "visible_length_m"]
+# trees.geojson: the trees.csv columns plus why a DBH is missing or how it was obtained
+# off breast height (empty for a DBH at breast height; not in trees.csv, whose header is fixed)
+TREE_GEOJSON_PROPERTIES = [*TREE_COLUMNS, "dbh_note"]
 CYLINDER_COLUMNS = [
     "scan",
     "cylinder_id",
@@ -222,10 +225,11 @@ def write_exports(
 def write_geojson(trees: pd.DataFrame, path: Path, campaign: Campaign) -> Path:
     """The tree list as a GeoJSON FeatureCollection of Points ``[x, y, z]`` in the campaign's
     local frame (metres, levelled frame of the reference scan; no geographic CRS, which the
-    foreign member ``forestmap`` states), every ``trees.csv`` column as a property."""
+    foreign member ``forestmap`` states), every ``trees.csv`` column and ``dbh_note`` as a
+    property (``null`` from a tree list stored before the column existed)."""
     features = []
-    for row in trees.reindex(columns=TREE_COLUMNS).itertuples(index=False):
-        props = {c: _json_value(getattr(row, c)) for c in TREE_COLUMNS}
+    for row in trees.reindex(columns=TREE_GEOJSON_PROPERTIES).itertuples(index=False):
+        props = {c: _json_value(getattr(row, c)) for c in TREE_GEOJSON_PROPERTIES}
         coords = [_json_value(row.x), _json_value(row.y), _json_value(row.z)]
         features.append(
             {
