@@ -189,14 +189,27 @@ def cmd_run(args) -> int:
     if summary.not_built:
         print(f"materialised what exists in {summary.seconds:.1f} s; no exports written to {out} yet")
         return _left_out(summary)
+    from forestmap_assets.orchestration.instance import get_instance
+    from forestmap_assets.orchestration.status import latest_materialization_id
     from forestmap_assets.orchestration.timings import stage_timings_or_note
-    from forestmap_assets.outputs.exports import write_exports
+    from forestmap_assets.outputs.exports import (
+        exports_current,
+        exports_key,
+        write_exports,
+        write_exports_stamp,
+    )
 
-    timings = None if args.no_report else stage_timings_or_note(summary.campaign)
-    written = write_exports(summary.campaign, out, cloud_spacing_m=None if args.no_cloud else args.cloud_spacing,
-                            picture=not args.no_report, report=not args.no_report, progress=progress,
-                            timings=timings)
-    print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
+    options = {"cloud": None if args.no_cloud else args.cloud_spacing, "report": not args.no_report}
+    key = exports_key(summary.campaign, latest_materialization_id(get_instance(), summary.campaign), options)
+    if exports_current(out, key):
+        print(f"outputs in {out} are up to date")
+    else:
+        timings = None if args.no_report else stage_timings_or_note(summary.campaign)
+        written = write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
+                                picture=not args.no_report, report=not args.no_report, progress=progress,
+                                timings=timings)
+        write_exports_stamp(out, key, written)
+        print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
     if summary.check_failures:
         _say(args, f"{len(summary.check_failures)} asset checks failed (listed above)")
     from forestmap_assets.io.store import default_store_url

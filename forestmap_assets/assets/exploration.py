@@ -21,8 +21,6 @@ from forestmap_assets.assets.common import (
     scan_partitions,
     stage_version,
 )
-from forestmap_assets.core.exploration.mapped_plan import plan_from_map, plan_tables
-from forestmap_assets.core.exploration.surface import scan_surface
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.figures.range_images import range_mask_figure
 
@@ -47,6 +45,7 @@ def exploration_assets(campaign: Campaign) -> list:
         "observed surface between unflagged neighbours as voxels (for the exploration grid).",
     )
     def occlusion_boundaries(context, range_images):
+        from forestmap_assets.core.exploration.surface import scan_surface
         from forestmap_assets.core.features.range_image import RangeImage
 
         image = RangeImage.from_table(range_images)
@@ -88,6 +87,7 @@ def exploration_assets(campaign: Campaign) -> list:
         "stems / 50 % overlap) and by walking distance (Men 2012 ch. 3.7-3.8, 6; men_spec 7).",
     )
     def next_vantage_points(context, occlusion_boundaries, integrated_map, tree_list):
+        from forestmap_assets.core.exploration.mapped_plan import plan_from_map, plan_tables
         from forestmap_assets.outputs.figures.exploration_map import exploration_figure
 
         surfaces = occlusion_boundaries or {}

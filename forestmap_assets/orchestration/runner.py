@@ -35,7 +35,7 @@ from dagster._core.storage.defs_state.base import set_defs_state_storage
 from forestmap_assets.assets.common import asset_key, job_name
 from forestmap_assets.io.campaign import Campaign, load_campaign
 from forestmap_assets.io.store import default_store_url
-from forestmap_assets.orchestration.executors import dask_cluster
+from forestmap_assets.orchestration.cluster import dask_cluster
 from forestmap_assets.orchestration.instance import get_instance, sync_partitions
 from forestmap_assets.orchestration.namespace import claim_campaign_name
 from forestmap_assets.orchestration.status import (
@@ -355,10 +355,13 @@ def run_campaign(
     workers: int | None = None,
     dask_address: str | None = None,
     stages: list[str] | None = None,
+    share_namespace: bool = False,
 ) -> RunSummary:
     """Materialise every missing or stale asset of a campaign, and nothing else.
 
     ``stages`` limits the work to those stages and what they read (default: all).
+    ``share_namespace``: run a variant folder of a campaign in the original's store namespace on
+    purpose (notebook 4); otherwise another folder with the same name is a one-line error.
 
     ``executor``: ``in_process`` (one run after another in this process), ``multiprocess``
     (Dagster's multiprocess executor, scans' runs side by side, ``workers`` processes in all) or
@@ -372,7 +375,8 @@ def run_campaign(
     instance = instance or get_instance()
     store_url = store_url or default_store_url()
     workers = workers or os.cpu_count() or 2
-    claim_campaign_name(campaign, store_url, record=False)  # fail before any work
+    if not share_namespace:
+        claim_campaign_name(campaign, store_url, record=False)  # fail before any work
     defs = build_definitions([campaign], store_url, executor=executor)
     # resolve definitions against this instance (not a stale one a caller left in the context)
     with set_defs_state_storage(instance.defs_state_storage):
@@ -387,11 +391,13 @@ def run_campaign(
             dask_address,
             stages,
             start,
+            share_namespace,
         )
 
 
 def _run(
-    campaign, defs, instance, executor, store_url, progress, workers, dask_address, stages, start
+    campaign, defs, instance, executor, store_url, progress, workers, dask_address, stages, start,
+    share_namespace=False,
 ) -> RunSummary:
     parents = stage_parents(defs, campaign)
     stages_all = campaign_stages(defs, campaign)
@@ -411,7 +417,8 @@ def _run(
     level_stages = [s for s, g in stages_all if g == "campaign"]
     with contextlib.ExitStack() as stack:
         stack.enter_context(campaign_lock(instance, campaign, progress))
-        claim_campaign_name(campaign, store_url)  # under the lock: one folder records itself
+        if not share_namespace:
+            claim_campaign_name(campaign, store_url)  # under the lock: one folder records itself
         if executor == "dask":
             dask_address = stack.enter_context(dask_cluster(dask_address, workers, progress))
         session = _Session(

@@ -192,3 +192,16 @@ def safe_subset(candidates: set[str], parents: dict[str, list[str]]) -> set[str]
                 chosen.discard(stage)
                 changed = True
     return chosen
+
+
+def latest_materialization_id(instance: DagsterInstance, campaign: Campaign) -> int:
+    """The newest materialisation of any of the campaign's stages, as the event log's storage
+    id: unchanged since an export means the exports are still current."""
+    newest = 0
+    for stage, _ in PIPELINE:
+        records = instance.fetch_materializations(
+            AssetRecordsFilter(asset_key=asset_key(campaign, stage)), limit=1
+        ).records
+        if records:
+            newest = max(newest, int(records[0].storage_id))
+    return newest

@@ -11,6 +11,7 @@ coordinates, for GIS users). Every file is written under a temporary name and re
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import uuid
@@ -126,6 +127,35 @@ EXPORTS = (
     "map.png",
     "report.html",
 )
+
+
+EXPORTS_STAMP = ".forestmap-exports.json"
+
+
+def exports_key(campaign: Campaign, state: int, options: dict) -> str:
+    """What the exports of a run depend on: the campaign, the newest stored stage (``state``),
+    the export options and the code that writes them (``outputs/``)."""
+    h = hashlib.sha256(repr((str(campaign.root), campaign.key, state, sorted(options.items()))).encode())
+    for src in sorted(Path(__file__).parent.rglob("*.py")):
+        h.update(src.read_bytes())
+    return h.hexdigest()[:24]
+
+
+def exports_current(out: str | Path, key: str) -> bool:
+    """Whether ``out`` holds the exports of ``key`` with every file still in place."""
+    stamp = Path(out) / EXPORTS_STAMP
+    try:
+        doc = json.loads(stamp.read_text())
+    except (OSError, ValueError):
+        return False
+    return doc.get("key") == key and all((Path(out) / n).is_file() for n in doc.get("files", []))
+
+
+def write_exports_stamp(out: str | Path, key: str, written: list[Path]) -> None:
+    """Record what :func:`write_exports` wrote (:func:`exports_current` reads it)."""
+    out = Path(out)
+    doc = {"key": key, "files": sorted(p.name for p in written)}
+    atomic_path(out / EXPORTS_STAMP, lambda tmp: tmp.write_text(json.dumps(doc)))
 
 
 def write_exports(

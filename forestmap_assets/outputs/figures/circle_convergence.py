@@ -5,11 +5,15 @@ chain."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
 
 from forestmap_assets.outputs.figures.common import new_figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def circle_changes(circles: pd.DataFrame) -> pd.DataFrame:

@@ -1,19 +1,20 @@
 """Shared style of the 2-D figures: the palette (registration statuses, bark, no-return, elevation
-colour map),
-pyplot-free figures (no global state, safe in worker processes), atomic PNG writing and inline PNG
-bytes,
-and the scan-frame axis symbols (JP Fig. 11) drawn by the network and elevation figures."""
+colour map), pyplot-free figures (no global state, safe in worker processes; matplotlib is
+imported when the first figure is drawn), atomic PNG writing and inline PNG bytes, and the
+scan-frame axis symbols (JP Fig. 11) drawn by the network and elevation figures."""
 
 from __future__ import annotations
 
 import io
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 STATUS_COLOURS = {
     "accepted": "#1b7837",
@@ -39,6 +40,9 @@ ELEVATION_CMAP = "YlGn_r"  # lighter = higher (thesis Fig. 6.11); the same scale
 
 def new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:
     """A pyplot-free figure with an Agg canvas."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(width, height), layout=layout)
     FigureCanvasAgg(fig)
     return fig

@@ -6,10 +6,10 @@ the 3-D render."""
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
 
 from forestmap_assets.outputs.figures.common import (
     ELEVATION_CMAP,
@@ -18,6 +18,9 @@ from forestmap_assets.outputs.figures.common import (
     new_figure,
     scan_frames,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def crop_box(

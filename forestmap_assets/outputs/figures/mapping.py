@@ -3,9 +3,10 @@ eq. (11) (thesis 6.4, 7.1), and the tree list's DBH distribution."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
 
 from forestmap_assets.outputs.figures.common import (
     BARK,
@@ -14,6 +15,9 @@ from forestmap_assets.outputs.figures.common import (
     new_figure,
     scan_frames,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def network_figure(

@@ -6,12 +6,16 @@ the range-mask picture of ingest and the azimuth of a chain for zooming."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
 
 from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
 from forestmap_assets.outputs.figures.common import NO_RETURN, colour_map, new_figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def _angles_extent(image: RangeImage) -> tuple[float, float, float, float]:

@@ -7,12 +7,15 @@ sub-maps before and after registration."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-from matplotlib.figure import Figure
 
 from forestmap_assets.outputs.figures.common import colour_map, new_figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def _level_components(cells: pd.DataFrame) -> np.ndarray:
