@@ -177,7 +177,7 @@ def pipeline_registration(scan_submap, ref_submap, scan_grid, ref_grid, centre, 
                               cheading_deg=centre[3], hx=half[0], hy=half[1], hz=half[2],
                               hheading_deg=half[3], box_heading_deg=0.0)])
     sub = {"B": scan_submap, "A": ref_submap}
-    out = register_candidates(cand, sub, params, workers=1, elevation={"B": scan_grid, "A": ref_grid},
+    out = register_candidates(cand, sub, params, elevation={"B": scan_grid, "A": ref_grid},
                               elevation_cell_m=elevation_cell_m)
     return out["registrations"].iloc[0], out["hypotheses"]
 

@@ -384,11 +384,10 @@ def register_isolated(cand: pd.DataFrame, submaps: dict, reg) -> dict:
             if reg.method == "thesis":
                 raise BrokenProcessPool("in process")
             pool = pool or ProcessPoolExecutor(1, mp_context=ctx)
-            b = pool.submit(register_candidates, row, subs, reg, workers=1).result()
+            b = pool.submit(register_candidates, row, subs, reg).result()
         except BrokenProcessPool:
             pool = None
-            b = register_candidates(row, subs, reg.model_copy(update={"method": "thesis"}),
-                                    workers=1)
+            b = register_candidates(row, subs, reg.model_copy(update={"method": "thesis"}))
             if reg.method != "thesis":
                 evaluator = "thesis (fast crashed)"
         b["registrations"]["evaluator"] = evaluator

@@ -297,3 +297,32 @@ def md_table(df: pd.DataFrame, floatfmt: str = ".3f") -> MetadataValue:
     for row in df.itertuples(index=False):
         lines.append("| " + " | ".join(format(v, floatfmt) if isinstance(v, float) else str(v) for v in row) + " |")
     return MetadataValue.md("\n".join(lines))
+
+
+def timed(fn):
+    """Asset body wrapper: the step's compute seconds join its Output's metadata (``seconds``),
+    so the profile of a run reads off the asset catalogue as well as the report (issue 16)."""
+    import functools
+    import inspect
+    import time
+
+    from dagster import Output
+
+    def stamp(result, start):
+        if isinstance(result, Output):
+            return result.with_metadata({**result.metadata, "seconds": round(time.perf_counter() - start, 3)})
+        return result
+
+    if inspect.isgeneratorfunction(fn):
+        @functools.wraps(fn)
+        def gen(*args, **kwargs):
+            start = time.perf_counter()
+            for item in fn(*args, **kwargs):
+                yield stamp(item, start)
+        return gen
+
+    @functools.wraps(fn)
+    def plain(*args, **kwargs):
+        start = time.perf_counter()
+        return stamp(fn(*args, **kwargs), start)
+    return plain

@@ -20,6 +20,7 @@ from forestmap_assets.assets.common import (
     png_metadata,
     scan_partitions,
     stage_version,
+    timed,
 )
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.figures.range_images import range_mask_figure
@@ -44,6 +45,7 @@ def exploration_assets(campaign: Campaign) -> list:
         "combined by union, plus the range-variance test (Men 2012 3.3; men_spec 3.1), and the "
         "observed surface between unflagged neighbours as voxels (for the exploration grid).",
     )
+    @timed
     def occlusion_boundaries(context, range_images):
         from forestmap_assets.core.exploration.surface import scan_surface
         from forestmap_assets.core.features.range_image import RangeImage
@@ -86,6 +88,7 @@ def exploration_assets(campaign: Campaign) -> list:
         "visibility model with trunk occlusion expects, under the overlap constraint (common "
         "stems / 50 % overlap) and by walking distance (Men 2012 ch. 3.7-3.8, 6; men_spec 7).",
     )
+    @timed
     def next_vantage_points(context, occlusion_boundaries, integrated_map, tree_list):
         from forestmap_assets.core.exploration.mapped_plan import plan_from_map, plan_tables
         from forestmap_assets.outputs.figures.exploration_map import exploration_figure

@@ -17,6 +17,7 @@ from forestmap_assets.assets.common import (
     png_metadata,
     scan_check_thresholds,
     scan_partitions,
+    timed,
 )
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.campaign import Campaign
@@ -62,6 +63,7 @@ def feature_assets(campaign: Campaign) -> list:
         description="Scan-line segments: blocking-object max filter, range-step runs, width "
         "window, T_out outlier gate, vertical chains (thesis 4.6.1; spec 2).",
     )
+    @timed
     def segments(context, range_images):
         image = _image(range_images)
         table = segment_scan_lines(image, params.segmentation, max_window_px=params.segmentation.max_window_px)
@@ -87,6 +89,7 @@ def feature_assets(campaign: Campaign) -> list:
         "axis re-estimation (thesis 4.6.2-4.6.3; spec 3).",
         check_specs=circle_check_specs(key("circle_models")),
     )
+    @timed
     def circle_models(context, range_images, segments):
         image = _image(range_images)
         cp = params.circles
@@ -122,6 +125,7 @@ def feature_assets(campaign: Campaign) -> list:
         "the curvature threshold and gaps, filtered by length (thesis 4.6.3; spec 4).",
         check_specs=cylinder_check_specs(key("cylinder_segments")),
     )
+    @timed
     def cylinder_segments(context, range_images, circle_models):
         final = circle_models[circle_models["iteration"] == circle_models["iteration"].max()] if len(circle_models) else circle_models
         table = assemble_cylinders(final, params.cylinders, reference=params.cylinders.curvature_reference)
@@ -147,6 +151,7 @@ def feature_assets(campaign: Campaign) -> list:
         description="Horizontal wall/ceiling border lines from the free/unknown-occupied "
         "border of a 3-D occupancy grid (thesis 4.7; spec 5). Empty in forests by default.",
     )
+    @timed
     def line_segments(context, range_images):
         lp = params.lines
         extra = ("max_beams", "step_fraction", "hit_margin_m", "min_wall_extent_m", "top_tolerance_m",
@@ -164,6 +169,7 @@ def feature_assets(campaign: Campaign) -> list:
         description="Lowest (or highest) beam hit per 0.1 m cell in the levelled scan frame "
         "(thesis 6.x; spec 9).",
     )
+    @timed
     def elevation_maps(context, range_images):
         table = elevation_grid(_image(range_images), params.elevation, max_distance_m=params.elevation.max_distance_m)
         meta = {"cells": len(table)}
@@ -180,6 +186,7 @@ def feature_assets(campaign: Campaign) -> list:
         description="Registration points sampled every 0.05 m along cylinder centre lines and "
         "wall lines, levelled scan frame (thesis 5.4; spec 6.2).",
     )
+    @timed
     def submaps(context, cylinder_segments, line_segments):
         table = build_submap(cylinder_segments, line_segments, params.submaps.spacing_m,
                              params.submaps.cylinder_weight)

@@ -19,6 +19,7 @@ from forestmap_assets.assets.common import (
     data_version,
     png_metadata,
     scan_partitions,
+    timed,
 )
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.campaign import Campaign
@@ -66,6 +67,7 @@ def ingest_assets(campaign: Campaign) -> list:
         description="Organised range image of one scan, levelled by its measured roll/pitch "
         "(forsman spec 1.2): one row per valid pixel (row, col, range, levelled x y z, colour).",
     )
+    @timed
     def range_images(context):
         sid = context.partition_key
         try:

@@ -23,6 +23,7 @@ from forestmap_assets.assets.common import (
     data_version,
     md_table,
     png_metadata,
+    timed,
 )
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.figures.elevation import elevation_figure
@@ -73,6 +74,7 @@ def mapping_assets(campaign: Campaign) -> list:
         "minimum-variance estimate (thesis 3.2.2, 6.4, 7.1; spec 8); with mapping.method "
         "'chain', the thesis's incremental chaining with summed variances (6.2; spec 8.3).",
     )
+    @timed
     def optimal_map(context, refined_registrations):
         regs = refined_registrations["registrations"]  # branch and bound, refined where it fits better
         accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
@@ -126,6 +128,7 @@ def mapping_assets(campaign: Campaign) -> list:
                            description="Every scan is placed by an admitted link, or explicitly reported as not registered."),
         ],
     )
+    @timed
     def residual_checks(context, optimal_map):
         residuals = optimal_map["residuals"].reset_index(drop=True)
         poses = optimal_map["poses"]
@@ -156,6 +159,7 @@ def mapping_assets(campaign: Campaign) -> list:
         description="All cylinder segments in the global frame and the merged lowest-hit "
         "elevation map of the registered scans (thesis 6.4, Figs 6.11-6.13; spec 9).",
     )
+    @timed
     def integrated_map(context, optimal_map, cylinder_segments, elevation_maps):
         poses = optimal_map["poses"]
         placed = poses[poses["registered"].astype(bool)]
@@ -181,6 +185,7 @@ def mapping_assets(campaign: Campaign) -> list:
         "a DBH not measured at breast height was obtained or why there is none (forestmap's step "
         "beyond the thesis; core/mapping/trees.py).",
     )
+    @timed
     def tree_list(context, integrated_map):
         grid = elevation_from_table(integrated_map["elevation"])
         trees, _ = merge_trees(integrated_map["cylinders"], grid)

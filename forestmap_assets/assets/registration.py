@@ -15,6 +15,7 @@ from forestmap_assets.assets.common import (
     code_version,
     data_version,
     md_table,
+    timed,
 )
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.progress import report
@@ -66,6 +67,7 @@ def registration_assets(campaign: Campaign) -> list:
         "with registration.no_prior_method 'fourier', no-prior boxes centred on the Fourier coarse "
         "registration of the raw points (men spec 4).",
     )
+    @timed
     def candidate_pairs(context, submaps, **raw):  # raw: {"range_images": ...} with fourier
         submaps = submaps or {}
         reg = params.registration
@@ -104,6 +106,7 @@ def registration_assets(campaign: Campaign) -> list:
         "every level's surviving cells, secondary hypotheses (thesis 5.3.3; spec 6.3-6.7); dz "
         "refined from the ground elevation maps (spec 9's proposed use).",
     )
+    @timed
     def pairwise_registrations(context, candidate_pairs, submaps, elevation_maps):
         bundle = register_candidates(candidate_pairs, submaps or {}, params.registration,
                                      elevation=elevation_maps or {}, elevation_cell_m=params.elevation.cell_m,
@@ -137,6 +140,7 @@ def registration_assets(campaign: Campaign) -> list:
         "have colour, else Open3D point-to-plane ICP; kept inside the branch-and-bound cloud's "
         "3-sigma box; sigmas from the ICP Hessian; used when it improves the fit.",
     )
+    @timed
     def refined_registrations(context, pairwise_registrations, range_images):
         settings = refine_settings(campaign)
         regs = pairwise_registrations["registrations"]

@@ -99,7 +99,7 @@ def test_ground_dz_gate_uses_the_feature_dz_sd(monkeypatch):
     sub = {s: pd.DataFrame({"x": [0.0], "y": [0.0], "z": [0.0]}) for s in "AB"}
     for offset, source in ((0.3, "ground"), (1.0, "features")):
         scan_grid = ref_grid.assign(z=-offset)  # the scan's ground sits `offset` lower
-        out = pr.register_candidates(cand, sub, params, workers=1,
+        out = pr.register_candidates(cand, sub, params,
                                      elevation={"A": ref_grid, "B": scan_grid})
         row = out["registrations"].iloc[0]
         assert row["status"] == "accepted" and row["z_source"].startswith(source)

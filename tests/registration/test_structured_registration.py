@@ -346,7 +346,7 @@ def test_pipeline_registrations_carry_the_coarse_to_fine_hypothesis():
     params = REG.model_copy(update={"method": METHOD, "z_from_ground": False})
     cand = candidate_pairs(["7", "8"], pairs=[("8", "7", (8.0, 0.0, 0.0, 0.0))],
                            search=(params.xy_m, params.z_m, params.heading_deg))
-    out = register_candidates(cand, {"7": a, "8": b}, params, workers=1)
+    out = register_candidates(cand, {"7": a, "8": b}, params)
     reg, hyp = out["registrations"].iloc[0], out["hypotheses"]
     assert reg["status"] == "rejected"
     late = hyp[hyp["source"] == "coarse-to-fine history"]

@@ -48,11 +48,8 @@ links).
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pandas as pd
@@ -217,7 +214,6 @@ def register_candidates(
     submaps: dict[str, pd.DataFrame],
     params: RegistrationParams,
     *,
-    workers: int | None = None,
     sigma_scale: float = 1.0,
     likelihood_temperature: float | None = 40.0,
     heading_temperature: float | None = 6.0,
@@ -247,20 +243,13 @@ def register_candidates(
         pts = lambda df: np.zeros((0, 3)) if df is None or df.empty else df[["x", "y", "z"]].to_numpy(float)  # noqa: E731
         jobs.append((pts(scan), pts(ref), (c.cx, c.cy, c.cz, c.cheading_deg), (c.hx, c.hy, c.hz, c.hheading_deg), params,
                      float(getattr(c, "box_heading_deg", 0.0) or 0.0)))
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    # one pair after another: the kernels already use every core (numba threads), and parallel
+    # work across pairs belongs to the orchestration (partitions), never a pool inside an asset
     results = []
-    if workers > 1 and len(jobs) > 1:
-        # spawn: a forked child would inherit the orchestrator's signal handlers and state
-        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            for k, res in enumerate(pool.map(_register_one, jobs)):
-                results.append(res)
-                if progress:
-                    progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {res.seconds:.1f} s")
-    else:
-        for k, job in enumerate(jobs):
-            results.append(_register_one(job))
-            if progress:
-                progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {results[-1].seconds:.1f} s")
+    for k, job in enumerate(jobs):
+        results.append(_register_one(job))
+        if progress:
+            progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {results[-1].seconds:.1f} s")
 
     rows, levels, hyps = [], [], []
     for c, job, res in zip(candidates.itertuples(index=False), jobs, results, strict=True):
