@@ -61,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the thesis's sites (spec 10.1): forest plot, parking lot (environment outdoor) "
                    "or office corridor (environment indoor); --plot-size is the lot / corridor ring size")
     s.add_argument("--people", type=int, default=0, help="people-shaped occluders (parking lot, corridor)")
+    s.add_argument("--stems", choices=["circular", "realistic"], default="circular",
+                   help="realistic: out-of-round, fluted, rough, swept and forked stems, dead branches, "
+                   "dense understorey (forest site)")
     s.add_argument("--colour", action="store_true",
                    help="RGB per point: bark, foliage, ground and clutter colours under each scan's light "
                    "(Men 2012 2.3), for hue-assisted ICP")
@@ -139,6 +142,7 @@ def cmd_simulate(args) -> int:
         site=args.site,
         site_kwargs={"people": args.people} if args.people else None,
         scanner_kwargs={"colour": True} if args.colour else None,
+        stems=args.stems,
     )
     if multi:
         path = pack_e57(out, prior_error=args.prior_error, seed=args.seed, with_prior=not args.no_prior)

@@ -9,7 +9,8 @@ T, S, R, Q, O, N, tripod levelled, operator a priori alignments for neighbouring
     OUT/scans/<id>.<fmt>         one range image per scan, in the scanner's own (tilted) frame
     OUT/truth/poses.csv          scan,x,y,z,heading_deg       (levelled frame of the first scan)
     OUT/truth/trees.csv          tree_id,x,y,z,dbh_m,n_visible_scans            (same frame)
-    OUT/truth/stems.csv          stem axis and radius model per tree (see forest.py)
+    OUT/truth/stems.csv          stem axis and radius model per tree (see stems.py; realistic
+                                 stems add the shape columns of stem_shapes.py)
     OUT/truth/labels/<id>.npz    per-pixel truth: kind (KIND_*, 255 none), tree_id (-1 none),
                                  mixed (first return from the beam edge, not its centre)
 
@@ -60,6 +61,7 @@ from forestmap_assets.sim.site_truth import (
     visible_parts,
 )
 from forestmap_assets.sim.sites import SITE_ENVIRONMENT, SITES, make_site
+from forestmap_assets.sim.stem_shapes import STEM_MODELS
 from forestmap_assets.sim.stems import STEM_COLUMNS, breast_height_table, stems_in_frame
 
 THESIS_IDS = "TSRQON"  # spec 10.1
@@ -243,6 +245,7 @@ def simulate_campaign(
     follow_ground_tilt: bool = True,
     tilt_noise_deg: float = 0.0,
     pair_span: int = 1,
+    stems: str = "circular",
 ) -> Path:
     """Simulate a campaign into folder ``out`` and return its path (DESIGN.md 3, ``simulate``).
 
@@ -257,7 +260,10 @@ def simulate_campaign(
     adds N(0, sigma) to the tilt written to ``campaign.yaml`` (a tilt-sensor error; the thesis's
     wall-line z spread, spec 10.4). ``prior_error`` (metres, degrees) bounds the a priori error
     of the pairs; ``no_prior`` writes no pairs and no search box; ``pair_span`` > 1 also pairs
-    cart stops up to that many apart (the thesis: 1). Deterministic for ``seed``.
+    cart stops up to that many apart (the thesis: 1). ``stems`` is the forest's stem model,
+    ``circular`` or ``realistic`` (issue 19, :mod:`.stem_shapes`: out-of-round, fluted, rough,
+    swept and forked stems, dead branch stubs, dense understorey; the same plot layout for one
+    seed; ``truth/stems.csv`` gains the shape columns). Deterministic for ``seed``.
     """
     if fmt not in FORMATS:
         raise ValueError(f"format: {fmt!r} is not one of {list(FORMATS)}")
@@ -267,6 +273,9 @@ def simulate_campaign(
         raise ValueError(f"site: {site!r} is not one of {list(SITES)}")
     if scans < 1:
         raise ValueError("scans: need at least one scan")
+    if stems not in STEM_MODELS or (stems != "circular" and site != "forest"):
+        raise ValueError(f"stems: {stems!r} is not one of {list(STEM_MODELS)} (realistic: forest "
+                         "site only)")
     say = progress or (lambda _msg: None)
     out = Path(out)
     (out / "scans").mkdir(parents=True, exist_ok=True)
@@ -281,9 +290,10 @@ def simulate_campaign(
     world: Forest | Site
     if site == "forest":
         world = make_forest(trees, plot_size, n_scans=scans,
-                            seed=np.random.default_rng(ss_forest), **(forest_kwargs or {}))
-        say(f"forest: {trees} trees in a {plot_size:g} m plot, {world.mesh.n_triangles} "
-            f"triangles")
+                            seed=np.random.default_rng(ss_forest), stems=stems,
+                            **(forest_kwargs or {}))
+        say(f"forest: {trees} {stems} trees in a {plot_size:g} m plot, "
+            f"{world.mesh.n_triangles} triangles")
         environment = "forest"
         headings = wrap_deg(rng.uniform(-180.0, 180.0, scans))
         heights = (1.5 if scanner_height_m is None else scanner_height_m) + rng.uniform(

@@ -27,6 +27,13 @@ from forestmap_assets.sim.scene_mesh import (
     concat_meshes,
     tube_mesh,
 )
+from forestmap_assets.sim.stem_shapes import (
+    STEM_MODELS,
+    realistic_columns,
+    stem_axis,
+    stem_surface,
+    stub_tubes,
+)
 from forestmap_assets.sim.stems import (
     BREAST_HEIGHT_M,
     STEM_COLUMNS,
@@ -97,6 +104,10 @@ def make_forest(
     ground_margin_m: float = 20.0,
     ground_cell_m: float = 0.5,
     ground_kwargs: dict | None = None,
+    stems: str = "circular",
+    shape_kwargs: dict | None = None,
+    dense_understorey_per_m2: float = 0.2,
+    dense_clearance_m: float = 1.2,
 ) -> Forest:
     """Build a virtual forest plot (square ``plot_size`` m centred at the origin).
 
@@ -106,8 +117,20 @@ def make_forest(
     foliage blobs from 3-6 m up, understorey bushes/saplings/boxes below ~1 m. Stems keep
     ``scan_clearance_m`` from the scan positions (``scan_xy`` or :func:`scan_layout` of
     ``n_scans``), understorey ``understorey_clearance_m``. All values (inferred).
+
+    ``stems="realistic"`` (issue 19, :mod:`.stem_shapes`) draws the same plot (positions, DBH,
+    heights, leans, crowns, the understorey above) and then, from a stream spawned off
+    ``seed``, gives the stems sweep, out-of-round sections, buttress flare and flutes, bark
+    relief and forks (``shape_kwargs`` to :func:`~.stem_shapes.realistic_columns`), adds dead
+    branch stubs on the lower trunks and a dense understorey layer
+    (``dense_understorey_per_m2`` saplings, bushes and dead wood, ``dense_clearance_m`` from
+    the scans; :func:`dense_understorey`).
     """
+    if stems not in STEM_MODELS:
+        raise ValueError(f"stems: {stems!r} is not one of {list(STEM_MODELS)}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    # realistic shapes come from their own stream, so the plot's draws stay those of circular
+    extra = rng.spawn(1)[0] if stems == "realistic" else None
     ground = make_ground(rng, **(ground_kwargs or {}))
     if scan_xy is None:
         scan_xy = scan_layout(n_scans, plot_size, rng)
@@ -134,7 +157,7 @@ def make_forest(
         axis=1,
     )
     crown_base = np.minimum(rng.uniform(*crown_base_range_m, trees), 0.6 * height)
-    stems = pd.DataFrame(
+    table = pd.DataFrame(
         {
             "tree_id": np.arange(1, trees + 1),
             "x_base": xy[:, 0],
@@ -152,32 +175,40 @@ def make_forest(
             "phase3_deg": np.degrees(harm[:, 3]),
         }
     )[STEM_COLUMNS]
-
-    base = stems[["x_base", "y_base", "z_base"]].to_numpy()
-    slope = np.column_stack([stems["lean_x"], stems["lean_y"], np.ones(trees)])
-
-    def axis_at(idx, h):  # stem axis points of trees (row index) at heights h
-        return base[idx] + np.asarray(h)[:, None] * slope[idx]
-
+    base = table[["x_base", "y_base", "z_base"]].to_numpy()
+    slope = np.column_stack([table["lean_x"], table["lean_y"], np.ones(trees)])
     idx = np.arange(trees)
-    h0 = np.full(trees, -0.3)  # the tube starts below the ground
-    sv, sf = tube_mesh(
-        axis_at(idx, h0),
-        axis_at(idx, height),
-        r_base - taper * h0,
-        r_base - taper * height,
-        n_sides=stem_sides,
-        n_rings=stem_rings,
-        harmonics=harm,
-    )
-    per_stem = 2 * (stem_rings - 1) * stem_sides
-    stem_owner = np.repeat(idx, per_stem)
     part = 1  # 0 is the ground
     pieces = []
     gv, gf = ground_mesh(ground, plot_size / 2 + ground_margin_m, ground_cell_m)
     pieces.append((gv, gf, np.full(len(gf), KIND_GROUND), np.full(len(gf), -1), np.zeros(len(gf))))
-    pieces.append((sv, sf, np.full(len(sf), KIND_STEM), stem_owner + 1, part + stem_owner))
-    part += trees
+    if extra is None:
+
+        def axis_at(i, h):  # stem axis points of trees (row index) at heights h
+            return base[i] + np.asarray(h)[:, None] * slope[i]
+
+        h0 = np.full(trees, -0.3)  # the tube starts below the ground
+        sv, sf = tube_mesh(
+            axis_at(idx, h0),
+            axis_at(idx, height),
+            r_base - taper * h0,
+            r_base - taper * height,
+            n_sides=stem_sides,
+            n_rings=stem_rings,
+            harmonics=harm,
+        )
+        per_stem = 2 * (stem_rings - 1) * stem_sides
+        stem_owner = np.repeat(idx, per_stem)
+        pieces.append((sv, sf, np.full(len(sf), KIND_STEM), stem_owner + 1, part + stem_owner))
+        part += trees
+    else:
+        table = realistic_columns(table, extra, **(shape_kwargs or {}))
+
+        def axis_at(i, h):  # stem axis points (with sweep) of trees (row index) at heights h
+            return np.column_stack(stem_axis(table.iloc[i], h))
+
+        part = _realistic_stems(table, extra, pieces, part)
+    stems = table
 
     # crowns: branches from the stem axis, foliage blobs at their ends and at the top
     crown_len = np.maximum(height * 0.95 - crown_base, 0.5)
@@ -268,4 +299,95 @@ def make_forest(
                 (v, f, np.full(len(f), KIND_UNDERSTOREY), np.full(len(f), -1), part + own)
             )
         part += n_u
+    if extra is not None and dense_understorey_per_m2 > 0:
+        flare = r_base + stems["flare_m"].to_numpy()
+        part = dense_understorey(ground, plot_size, scan_xy, xy, flare, extra, pieces, part,
+                                 per_m2=dense_understorey_per_m2, clearance_m=dense_clearance_m)
     return Forest(plot_size, ground, stems, scan_xy, concat_meshes(pieces))
+
+
+def _realistic_stems(stems: pd.DataFrame, rng: np.random.Generator, pieces: list,
+                     part: int) -> int:
+    """Append the realistic stem meshes (main stems: parts ``part + row``; second leaders and
+    stubs after them) to ``pieces``; returns the next free part id."""
+    n = len(stems)
+    ids = stems["tree_id"].to_numpy()
+    leaders = []
+    for i, (_, row) in enumerate(stems.iterrows()):
+        main, *fork = stem_surface(row, rng)
+        pieces.append((*main, np.full(len(main[1]), KIND_STEM), np.full(len(main[1]), ids[i]),
+                       np.full(len(main[1]), part + i)))
+        leaders += [(v, f, ids[i]) for v, f in fork]
+    part += n
+    for k, (v, f, tid) in enumerate(leaders):
+        pieces.append((v, f, np.full(len(f), KIND_STEM), np.full(len(f), tid),
+                       np.full(len(f), part + k)))
+    part += len(leaders)
+    v, f, tree, own = stub_tubes(stems, rng)
+    if len(f):
+        pieces.append((v, f, np.full(len(f), KIND_BRANCH), ids[tree[own]], part + own))
+        part += tree.size
+    return part
+
+
+def dense_understorey(ground: Ground, plot_size: float, scan_xy: np.ndarray,
+                      stem_xy: np.ndarray, stem_r: np.ndarray, rng: np.random.Generator,
+                      pieces: list, part: int, *, per_m2: float = 0.2,
+                      clearance_m: float = 1.2) -> int:
+    """A dense understorey layer (realistic forest, inferred): ``per_m2`` objects, half
+    saplings (stems 1-4 cm thick, 0.5-3 m tall, leaning, with one or two small porous leaf
+    blobs), 40 % bushes (clusters of 1-3 blobs, 0.15-0.6 m), 10 % dead wood (lying logs
+    5-20 cm thick, 0.5-3 m long), ``clearance_m`` from the scans and clear of the stems
+    (``stem_r``: radius at the ground). Appended to ``pieces``; returns the next part id."""
+    n = int(round(per_m2 * plot_size**2))
+    if not n:
+        return part
+    size = rng.uniform(0.05, 0.4, 4 * n + 64)
+    cand = rng.uniform(-plot_size / 2, plot_size / 2, (size.size, 2))
+    ok = (np.linalg.norm(cand[:, None] - scan_xy[None], axis=2) >= clearance_m + size[:, None]).all(1)
+    ok &= (np.linalg.norm(cand[:, None] - stem_xy[None], axis=2)
+           >= stem_r[None] + size[:, None] + 0.05).all(1)
+    cand, size = cand[ok][:n], size[ok][:n]
+    n = len(size)
+    kind = rng.choice(3, n, p=[0.5, 0.4, 0.1])
+    zc = ground.height(cand[:, 0], cand[:, 1])
+
+    def add(v, f, own):
+        pieces.append((v, f, np.full(len(f), KIND_UNDERSTOREY), np.full(len(f), -1), part + own))
+
+    m = np.flatnonzero(kind == 0)  # saplings
+    if m.size:
+        hgt = rng.uniform(0.5, 3.0, m.size)
+        top = np.column_stack([cand[m] + rng.normal(0, 0.06, (m.size, 2)) * hgt[:, None],
+                               zc[m] + hgt])
+        rs = 0.5 * rng.uniform(0.01, 0.04, m.size)
+        v, f = tube_mesh(np.column_stack([cand[m], zc[m] - 0.1]), top, rs, 0.3 * rs,
+                         n_sides=8, n_rings=2)
+        add(v, f, m[np.repeat(np.arange(m.size), 16)])
+        k = np.repeat(np.arange(m.size), rng.integers(1, 3, m.size))
+        c = top[k] - np.column_stack([np.zeros((k.size, 2)), rng.uniform(0, 0.5, k.size) * hgt[k]])
+        c[:, :2] += rng.normal(0, 0.1, (k.size, 2))
+        rad = rng.uniform(0.1, 0.35, (k.size, 1)) * [[1.0, 1.0, 0.7]]
+        v, f, own = blob_mesh(c, rad, rng, jitter=0.3, porosity=0.4)
+        add(v, f, m[k[own]])
+    m = np.flatnonzero(kind == 1)  # bushes
+    if m.size:
+        k = np.repeat(np.arange(m.size), rng.integers(1, 4, m.size))
+        rad = rng.uniform(0.15, 0.6, (k.size, 1)) * rng.uniform(0.7, 1.0, (k.size, 3))
+        c = np.column_stack([cand[m][k] + rng.normal(0, 0.25, (k.size, 2)),
+                             zc[m][k] + rng.uniform(0.3, 0.9, k.size) * rad[:, 2]])
+        v, f, own = blob_mesh(c, rad, rng, jitter=0.3, porosity=0.25)
+        add(v, f, m[k[own]])
+    m = np.flatnonzero(kind == 2)  # dead wood on the ground
+    if m.size:
+        az = rng.uniform(-np.pi, np.pi, m.size)
+        half = 0.5 * rng.uniform(0.5, 3.0, m.size)[:, None] * np.column_stack([np.cos(az),
+                                                                                np.sin(az)])
+        r = 0.5 * rng.uniform(0.05, 0.2, m.size)
+        p0, p1 = cand[m] - half, cand[m] + half
+        z0 = ground.height(p0[:, 0], p0[:, 1]) + 0.5 * r
+        z1 = ground.height(p1[:, 0], p1[:, 1]) + 0.5 * r
+        v, f = tube_mesh(np.column_stack([p0, z0]), np.column_stack([p1, z1]), r, 0.8 * r,
+                         n_sides=8, n_rings=2)
+        add(v, f, m[np.repeat(np.arange(m.size), 16)])
+    return part + n

@@ -3,6 +3,7 @@
 :class:`SceneMesh` is one triangle mesh whose triangles carry labels (kind, tree, part), so that
 a ray cast with open3d's ``RaycastingScene`` tells which object it hit; plus its primitives:
 open tapered tubes (radius harmonics ``a2 cos 2(psi - phase2) + a3 cos 3(psi - phase3)``),
+open tubes through rings of any radius profile (the realistic stems of :mod:`.stem_shapes`),
 irregular ellipsoid blobs (foliage, bushes) and boxes. Shapes are (inferred)."""
 
 from __future__ import annotations
@@ -133,6 +134,33 @@ def tube_mesh(
     tri = np.concatenate([quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]])
     faces = tri[None, :, :] + (np.arange(n) * n_rings * n_sides)[:, None, None]
     return verts.reshape(-1, 3), faces.reshape(-1, 3)
+
+
+def ring_tube_mesh(
+    centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """One open tube through rings of varying radius (realistic stems, :mod:`.stem_shapes`).
+
+    ``centres`` (R, 3) ring centres along a possibly curved axis, ``tangents`` (R, 3) the axis
+    direction there, ``radius`` (R, S) the radius at ``psi_k = 2 pi k / S``, measured about the
+    tangent from the x axis projected perpendicular to it (as :func:`tube_mesh`). Returns
+    ``(R * S, 3)`` vertices and ``(2 (R - 1) S, 3)`` faces (ring-major, like :func:`tube_mesh`).
+    """
+    centres = np.asarray(centres, dtype=np.float64)
+    t = np.asarray(tangents, dtype=np.float64)
+    t = t / np.linalg.norm(t, axis=1, keepdims=True)
+    e1, e2 = _perpendicular_frame(t)
+    n_rings, n_sides = radius.shape
+    psi = np.arange(n_sides) * (2 * np.pi / n_sides)
+    ring = (np.cos(psi)[None, :, None] * e1[:, None, :]
+            + np.sin(psi)[None, :, None] * e2[:, None, :])  # (R, S, 3)
+    verts = centres[:, None, :] + radius[..., None] * ring
+    j, k = np.meshgrid(np.arange(n_rings - 1), np.arange(n_sides), indexing="ij")
+    a = j * n_sides + k
+    b = j * n_sides + (k + 1) % n_sides
+    quad = np.stack([a, b, b + n_sides, a + n_sides], axis=-1).reshape(-1, 4)
+    faces = np.concatenate([quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]])
+    return verts.reshape(-1, 3), faces
 
 
 def _unit_icosphere() -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,10 @@ Stem model (world frame, ``h`` = vertical height above ``z_base``, the ground un
 
 ``psi`` is the angle about the axis measured from the x axis projected perpendicular to the axis.
 Breast height is ``h = 1.3`` m and the diameter at breast height is ``dbh_m = 2 r(1.3)``. DBH,
-height and placement distributions are (inferred)."""
+height and placement distributions are (inferred). These are the ``circular`` stems; the
+``realistic`` stems of :mod:`.stem_shapes` (issue 19) add columns to the same table (sweep,
+out-of-round sections, buttress flare and flutes, bark, forks) and keep ``r(h)`` as the mean
+radius, so ``dbh_m = 2 r(1.3)`` holds for both."""
 
 from __future__ import annotations
 
@@ -89,30 +92,65 @@ def place_stems(
     return placed
 
 
+def sweep_offset(stems: pd.DataFrame, h) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal offset (dx, dy) of the stem axis from the straight lean line at heights ``h``
+    (one per row, or broadcastable): ``sweep_m sin(pi h / height_m)`` towards ``sweep_deg``
+    (realistic stems, :mod:`.stem_shapes`); zero when the table has no ``sweep_m``."""
+    h = np.asarray(h, dtype=np.float64)
+    if "sweep_m" not in stems.columns:
+        return np.zeros_like(h), np.zeros_like(h)
+    bow = stems["sweep_m"].to_numpy(float) * np.sin(np.pi * h / stems["height_m"].to_numpy(float))
+    a = np.radians(stems["sweep_deg"].to_numpy(float))
+    return bow * np.cos(a), bow * np.sin(a)
+
+
 def breast_height_table(stems: pd.DataFrame) -> pd.DataFrame:
-    """``tree_id, x, y, z, dbh_m`` of a stem table (any frame): axis at 1.3 m, ground z."""
+    """``tree_id, x, y, z, dbh_m`` of a stem table (any frame): the centre of the cross-section
+    at 1.3 m above the ground under the stem (lean and sweep included), ground z, and the DBH
+    ``2 (r_base_m - 1.3 taper_m_per_m)``: twice the mean radius of the cross-section at 1.3 m,
+    i.e. the mean of its diameters through the centre over all directions (for an out-of-round
+    stem also the mean of its largest and smallest diameter, cross-calipering; bark roughness,
+    zero mean, is left out; :mod:`.stem_shapes`)."""
     h = BREAST_HEIGHT_M
+    x = stems["x_base"].to_numpy() + stems["lean_x"].to_numpy() * h
+    y = stems["y_base"].to_numpy() + stems["lean_y"].to_numpy() * h
+    if "sweep_m" in stems.columns:
+        dx, dy = sweep_offset(stems, np.full(len(stems), h))
+        x, y = x + dx, y + dy
     return pd.DataFrame(
         {
             "tree_id": stems["tree_id"].to_numpy(),
-            "x": stems["x_base"].to_numpy() + stems["lean_x"].to_numpy() * h,
-            "y": stems["y_base"].to_numpy() + stems["lean_y"].to_numpy() * h,
+            "x": x,
+            "y": y,
             "z": stems["z_base"].to_numpy(),
             "dbh_m": 2 * (stems["r_base_m"].to_numpy() - stems["taper_m_per_m"].to_numpy() * h),
         }
     )
 
 
+# columns that move with the frame: points (x, y, z), horizontal vectors (x, y), angles (deg)
+FRAME_POINTS = (("x_base", "y_base", "z_base"), ("fork_x", "fork_y", "fork_z"))
+FRAME_VECTORS = (("lean_x", "lean_y"),)
+FRAME_ANGLES = ("phase2_deg", "phase3_deg", "ellipse_deg", "lobe_phase_deg", "sweep_deg",
+                "fork_az_deg")
+
+
 def stems_in_frame(stems: pd.DataFrame, origin: np.ndarray, heading_deg: float) -> pd.DataFrame:
-    """Stem table expressed in a levelled frame at ``origin`` with ``heading_deg`` (world)."""
+    """Stem table expressed in a levelled frame at ``origin`` with ``heading_deg`` (world):
+    every point, horizontal vector and angle column present (``FRAME_*``) is moved."""
     c, s = np.cos(np.radians(heading_deg)), np.sin(np.radians(heading_deg))
     out = stems.copy()
-    dx = stems["x_base"].to_numpy() - origin[0]
-    dy = stems["y_base"].to_numpy() - origin[1]
-    out["x_base"], out["y_base"] = c * dx + s * dy, -s * dx + c * dy
-    out["z_base"] = stems["z_base"].to_numpy() - origin[2]
-    lx, ly = stems["lean_x"].to_numpy(), stems["lean_y"].to_numpy()
-    out["lean_x"], out["lean_y"] = c * lx + s * ly, -s * lx + c * ly
-    for col in ("phase2_deg", "phase3_deg"):  # psi is measured from the (rotated) x axis
-        out[col] = np.mod(stems[col].to_numpy() - heading_deg + 180.0, 360.0) - 180.0
+    for cx, cy, cz in FRAME_POINTS:
+        if cx not in stems.columns:
+            continue
+        dx = stems[cx].to_numpy() - origin[0]
+        dy = stems[cy].to_numpy() - origin[1]
+        out[cx], out[cy] = c * dx + s * dy, -s * dx + c * dy
+        out[cz] = stems[cz].to_numpy() - origin[2]
+    for cx, cy in FRAME_VECTORS:
+        lx, ly = stems[cx].to_numpy(), stems[cy].to_numpy()
+        out[cx], out[cy] = c * lx + s * ly, -s * lx + c * ly
+    for col in FRAME_ANGLES:  # psi is measured from the (rotated) x axis
+        if col in stems.columns:
+            out[col] = np.mod(stems[col].to_numpy() - heading_deg + 180.0, 360.0) - 180.0
     return out
