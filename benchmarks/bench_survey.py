@@ -7,11 +7,19 @@ prior, ``truth/poses.csv`` in the frame of the first scan). The same clouds are 
 Sylva's ``coregister`` and by ``forestmap run CAMPAIGN --no-cloud`` (a new process with a fresh
 ``FORESTMAP_HOME``, as a user would run it), one after the other. The same is done on campaigns of
 forestmap's own simulator at full resolution (``forestmap simulate --resolution full --no-prior
---format ply``). Each child's wall time, CPU time and peak resident memory are measured
-(``getrusage(RUSAGE_CHILDREN)`` of a wrapper process around it), and each scan's pose is compared
-with the truth. Prints the tables and writes the ``survey`` section of ``benchmarks/results.md``:
-time and memory with the ratio forestmap / Sylva, pose errors per scan, forestmap's fine
-registration outcome and where its run spends its time (from its log lines).
+--format ply``). Each child's wall time, CPU time and peak memory are measured
+(``getrusage(RUSAGE_CHILDREN)`` of a wrapper process around it, and the process tree's summed PSS
+sampled every 0.5 s), and each scan's pose is compared with the truth. Prints the tables and
+writes the ``survey`` section of ``benchmarks/results.md``: time and memory with the ratio
+forestmap / Sylva, pose errors per scan, forestmap's fine-registration outcome (refined or kept
+the branch-and-bound pose, and why) with the pair errors along and across the baseline, and
+where each run spends its time (forestmap's stage lines, Sylva's progress lines).
+
+Options: ``--seeds N|a,b`` Sylva surveys (default 3), ``--own-seeds`` own-simulator surveys
+(default 1, 0 for none), ``--scans`` (6), ``--skip-peer`` (no Sylva: own simulator and forestmap
+only; also what happens, with the error in the section, when Sylva cannot be installed or
+imported), ``--cache DIR`` (keep campaigns, logs and stores; simulated campaigns are reused),
+``--report-only`` (rebuild the tables from ``--cache``), ``--no-write``.
 
 Sylva (PyPI ``sylva-rs``) is GPL-3: it is only run, as a separate program in its own venv
 (``benchmarks/.venv-peer``, from ``benchmarks/requirements-peer.txt``); this file runs itself
@@ -415,7 +423,7 @@ def sylva_phases(lines: list[tuple[float, str]], wall: float) -> dict[str, float
     for t, name in marks:
         res[name] = t - prev
         prev = t
-    res["report, exit"] = wall - prev
+    res["report, exit"] = max(0.0, wall - prev)
     return res
 
 
@@ -622,7 +630,7 @@ def report(cases: list[dict], meta: dict) -> str:
                  f"{_f(scpu)} | {_f(fcpu)} | {_f(cr[-1], '{:.2f}')} | {_f(sm, '{:.2f}')} | "
                  f"{_f(fm, '{:.2f}')} | {_f(mr[-1], '{:.2f}')} | "
                  f"{f['load_before']:.1f} / {_f(s.get('load_before'))} |")
-    codes = sorted({c["forestmap"].get("code", "?") for c in cases})
+    codes = list(dict.fromkeys(c["forestmap"].get("code", "?") for c in cases))
     L += ["", "forestmap code: " + "; ".join(
         f"{k} ({', '.join(case_name(c) for c in cases if c['forestmap'].get('code', '?') == k)})"
         for k in codes) + ".", ""]
@@ -721,7 +729,8 @@ def report(cases: list[dict], meta: dict) -> str:
         L += ["", "Sylva's run by phase (seconds, from the times of its progress lines):", "",
               "| phase | " + " | ".join(case_name(c) for c in sy) + " |", "|---|" + "---|" * len(sy)]
         for n in names:
-            L.append(f"| {n} | " + " | ".join(_f(c["sylva"]["phases"].get(n)) for c in sy) + " |")
+            L.append(f"| {n} | " + " | ".join(_f(None if (v := c["sylva"]["phases"].get(n)) is None
+                                                    else max(0.0, v)) for c in sy) + " |")
         L.append("| wall | " + " | ".join(f"{c['sylva']['wall_s']:.1f}" for c in sy) + " |")
     good_t = [x for x in tr if x is not None]
     good_m = [x for x in mr if x is not None]
