@@ -36,7 +36,7 @@ CODE_VERSIONS: dict[str, str] = {
     "submaps": "1",
     "candidate_pairs": "1",
     "pairwise_registrations": "2",
-    "refined_registrations": "1",
+    "refined_registrations": "2",
     "optimal_map": "3",
     "residual_checks": "1",
     "integrated_map": "2",

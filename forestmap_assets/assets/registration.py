@@ -137,8 +137,10 @@ def registration_assets(campaign: Campaign) -> list:
         code_version=code_version(campaign, "refined_registrations"),
         description="Every accepted branch-and-bound registration refined on the raw levelled "
         "points: hue-assisted ICP (4-D association x, y, z, w*hue; men spec 5) where both scans "
-        "have colour, else Open3D point-to-plane ICP; kept inside the branch-and-bound cloud's "
-        "3-sigma box; sigmas from the ICP Hessian; used when it improves the fit.",
+        "have colour, else robust point-to-plane both ways (scan onto reference and back); "
+        "free to move within a trust region and used when its own fit says so (the two "
+        "directions agree, the overlap is kept, the residuals fall); sigmas from the ICP "
+        "Hessian and the two directions' disagreement.",
     )
     @timed
     def refined_registrations(context, pairwise_registrations, range_images):
@@ -157,6 +159,9 @@ def registration_assets(campaign: Campaign) -> list:
             "median_fit_bnb_mm": round(float(ref["fit_bnb_m"].median() * 1000), 3) if len(ref) else 0.0,
             "median_fit_refined_mm": round(float(ref["fit_refined_m"].median() * 1000), 3) if len(ref) else 0.0,
             "median_seconds": round(float(ref["seconds"].median()), 2) if len(ref) else 0.0,
+            # how far the used refinements moved the coarse pose, and how well the two directions agree
+            "median_moved_xy_mm": round(float(used["moved_xy_m"].median() * 1000), 2) if len(used) else 0.0,
+            "median_disagree_xy_mm": round(float(used["disagree_xy_m"].median() * 1000), 2) if len(used) else 0.0,
             "not_used": MetadataValue.json({f"{r.scan}{r.reference}": r.reason for r in ref.itertuples()
                                            if r.used != "refined"}),
         }

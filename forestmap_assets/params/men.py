@@ -39,6 +39,24 @@ class RefineSettings:
     plane_iterations: int = 30
     open3d_start: bool = True
     robust_k: float | None = 4.685  # Tukey's biweight constant (95 % efficiency); None: least squares
+    # what decides whether the refined pose is used (core/registration/two_way.py): "fit" = its
+    # own fit (both directions agree, overlap kept, residuals lower) inside a trust region of
+    # max_shift_m / max_turn_deg; "box" = inside box_sigmas x the branch-and-bound sigma (before)
+    guard: str = "fit"
+    two_way: bool = True
+    # two-way least squares: association radii and Gauss-Newton steps, coarse then fine
+    two_way_radii_m: tuple[float, float] = (0.1, 0.05)
+    two_way_iterations: tuple[int, int] = (5, 10)
+    plane_tol: float = 1e-4  # a Gauss-Newton run stops when its step is below this (m and rad)
+    max_shift_m: float = 0.25
+    max_turn_deg: float = 0.5
+    agree_m: float = 0.01
+    agree_deg: float = 0.05
+    agree_sigmas: float = 3.0
+    min_overlap_kept: float = 0.9
+    two_way_model_voxel_m: float = 0.04  # the model voxel of the two-way refinement
+    max_data_points: int = 20000  # the data cloud of each scan is thinned to at most this many
+    max_fit_loss: float = 0.005  # relative: the refined fit may be this much worse (noise)
 
 
 Combine = Literal["spacing", "variance", "either", "both"]

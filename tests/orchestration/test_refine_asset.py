@@ -77,4 +77,4 @@ def test_refined_registrations_asset_uses_hicp_on_colour_scans(tmp_path, _isolat
     assert not bool(rej["refined"]) and rej["dx"] == s.x + offset[0]
     meta = res.asset_materializations_for_node(key.to_python_identifier())[0].metadata
     assert meta["refined"].value == 1 and meta["accepted_pairs"].value == 1
-    assert code_version(campaign, "refined_registrations").startswith("v1-")
+    assert code_version(campaign, "refined_registrations").startswith("v2-")

@@ -235,7 +235,7 @@ def test_refine_pair_improves_branch_and_bound_pose_within_its_box(colour):
 
     scan, h_scan, ref, h_ref, truth = _scene_views()
     settings = RefineSettings(data_voxel_m=0.1, model_voxel_m=0.0, radius_m=0.3, z_band_m=(-20.0, 20.0),
-                              max_range_m=50.0, min_pairs=100)
+                              max_range_m=50.0, min_pairs=100, guard="box")
     start = truth + np.array([0.03, -0.02, 0.015, 0.08])
     sd = np.array([0.02, 0.02, 0.01, 0.05])
     row = refine_pair(scan, ref, start, sd, h_scan if colour else None, h_ref if colour else None, settings)
@@ -249,3 +249,55 @@ def test_refine_pair_improves_branch_and_bound_pose_within_its_box(colour):
     row = refine_pair(scan, ref, start, sd / 20, h_scan if colour else None, h_ref if colour else None, settings)
     assert row["at_box_edge"] and row["used"] == "branch_and_bound"
     assert "box" in row["reason"]
+
+
+def _registrations(scan_id, ref_id, pose, sd):
+    import pandas as pd
+
+    return pd.DataFrame([{"scan": scan_id, "reference": ref_id, "status": "accepted",
+                          **dict(zip(("dx", "dy", "dz", "dheading_deg"), pose, strict=True)),
+                          **dict(zip(("sd_x", "sd_y", "sd_z", "sd_heading_deg"), sd, strict=True))}])
+
+
+def test_two_way_refinement_moves_as_far_as_the_points_say():
+    """A coarse pose 4 cm off with a coarse sigma of 1 mm (the box would keep it): the two-way
+    refinement goes to the truth, is used, and its sigma covers its error (issue 19)."""
+    from forestmap_assets.core.registration.refine import refine_registrations
+    from forestmap_assets.params.men import RefineSettings
+
+    scan, _, ref, _, truth = _scene_views()
+    settings = RefineSettings(data_voxel_m=0.1, model_voxel_m=0.0, z_band_m=(-20.0, 20.0), max_range_m=50.0,
+                              min_pairs=100)
+    start = truth + np.array([0.03, -0.025, 0.015, 0.08])
+    out = refine_registrations(_registrations("a", "b", start, [0.001, 0.001, 0.001, 0.002]),
+                               {"a": (scan, None), "b": (ref, None)}, settings)
+    row = out["refinements"].iloc[0]
+    assert row["used"] == "refined", row["reason"]
+    est = out["registrations"].iloc[0][["dx", "dy", "dz", "dheading_deg"]].to_numpy(float)
+    sd = out["registrations"].iloc[0][["sd_x", "sd_y", "sd_z", "sd_heading_deg"]].to_numpy(float)
+    assert np.linalg.norm(est[:3] - truth[:3]) < 0.005 and abs(est[3] - truth[3]) < 0.02
+    assert np.all(np.abs(est - truth) < 3 * sd)
+    assert row["moved_xy_m"] > 0.03 and row["disagree_xy_m"] < 0.005
+    # the old guard refuses the same move: it leaves the coarse sigma's 3-sigma box
+    old = refine_registrations(_registrations("a", "b", start, [0.001, 0.001, 0.001, 0.002]),
+                               {"a": (scan, None), "b": (ref, None)},
+                               RefineSettings(**{**settings.__dict__, "guard": "box"}))
+    assert old["refinements"].iloc[0]["used"] == "branch_and_bound"
+
+
+def test_two_way_refinement_refuses_a_pose_its_points_do_not_support():
+    """Scans that share no surface (one cloud moved 30 m away) are not refined; a start outside
+    the trust region's reach ends on its edge and is not used."""
+    from forestmap_assets.core.registration.refine import refine_registrations
+    from forestmap_assets.params.men import RefineSettings
+
+    scan, _, ref, _, truth = _scene_views()
+    settings = RefineSettings(data_voxel_m=0.1, model_voxel_m=0.0, z_band_m=(-20.0, 20.0), max_range_m=50.0,
+                              min_pairs=100)
+    far = refine_registrations(_registrations("a", "b", truth + np.array([30.0, 0, 0, 0]), [0.01] * 4),
+                               {"a": (scan, None), "b": (ref, None)}, settings)["refinements"].iloc[0]
+    assert far["used"] == "branch_and_bound" and "overlap" in far["reason"]
+    tight = RefineSettings(**{**settings.__dict__, "max_shift_m": 0.01})
+    edge = refine_registrations(_registrations("a", "b", truth + np.array([0.05, 0.0, 0.0, 0.0]), [0.01] * 4),
+                                {"a": (scan, None), "b": (ref, None)}, tight)["refinements"].iloc[0]
+    assert edge["used"] == "branch_and_bound" and "trust region" in edge["reason"]

@@ -37,7 +37,7 @@ def point_to_plane_4dof(
     for it in range(1, iterations + 1):  # noqa: B007
         r, t = pose4_to_matrix(pose)
         moved = data @ r.T + t
-        _, idx = tree.query(moved, k=1, distance_upper_bound=max_distance_m)
+        _, idx = tree.query(moved, k=1, distance_upper_bound=max_distance_m, workers=-1)
         ok = idx < len(model)
         ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
         partner = np.where(ok, idx, -1)

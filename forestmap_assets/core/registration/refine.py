@@ -22,8 +22,13 @@ the two range images:
    on the simulated sample; benchmarks/results.md). Before HICP the median hue difference of
    spatially paired points is removed (``hue_offset``: cameras' white balance differs between
    scans, which the thesis's hue invariance ignores);
-3. the pose is **kept inside the branch-and-bound cloud's box** ``centre +- box_sigmas * sd``
-   (projected after every iteration); a result on the box edge is not used;
+3. with ``guard="fit"`` (default) the pose may move as far as the points say, inside a trust
+   region of ``max_shift_m`` / ``max_turn_deg`` (a result on its edge is not used), and without
+   colour the pair is refined **both ways** and accepted on its own fit
+   (:mod:`~.two_way`: the directions agree, the overlap is kept, the residuals fall), because the
+   branch-and-bound sigma is smallest exactly where stem shapes bias the coarse pose (issue 19);
+   with ``guard="box"`` (before) it is **kept inside the branch-and-bound cloud's box**
+   ``centre +- box_sigmas * sd`` and a result on the box edge is not used;
 4. the fit (mean point-to-plane distance of data points to their nearest model point within
    ``radius_m``, Eq. 4.9 along the normal, each distance truncated at the robust cut-off of the
    branch-and-bound pose, :func:`fit_error`) is measured at the branch-and-bound pose and at
@@ -65,6 +70,7 @@ from forestmap_assets.core.registration.point_to_plane import (
     open3d_point_to_plane,
     point_to_plane_4dof,
 )
+from forestmap_assets.core.registration.two_way import RefineCloud, two_way_refine
 from forestmap_assets.params.men import RefineSettings
 
 POSE = ["dx", "dy", "dz", "dheading_deg"]
@@ -74,7 +80,8 @@ REFINE_COLUMNS = [
     "bnb_sd_x", "bnb_sd_y", "bnb_sd_z", "bnb_sd_heading_deg", "ref_dx", "ref_dy", "ref_dz",
     "ref_dheading_deg", "ref_sd_x", "ref_sd_y", "ref_sd_z", "ref_sd_heading_deg", "fit_bnb_m",
     "fit_refined_m", "pairs_bnb", "pairs_refined", "iterations", "converged", "at_box_edge",
-    "hue_offset", "n_data", "n_model", "seconds",
+    "hue_offset", "n_data", "n_model", "moved_xy_m", "moved_z_m", "moved_heading_deg", "disagree_xy_m",
+    "disagree_z_m", "disagree_heading_deg", "seconds",
 ]
 
 
@@ -180,7 +187,8 @@ def refine_pair(
              if s.robust_k is not None and (method == "point_to_plane" or s.plane_polish) else None)
     fit_b, pairs_b = fit_error(tree3, normals, data @ r0.T + t0v, s.radius_m, trunc)
     row.update(fit_bnb_m=fit_b, pairs_bnb=pairs_b)
-    half = np.maximum(s.box_sigmas * sd, 1e-9)
+    half = (np.maximum(s.box_sigmas * sd, 1e-9) if s.guard == "box"
+            else np.array([s.max_shift_m, s.max_shift_m, s.max_shift_m, s.max_turn_deg]))
     box = (pose, half)
 
     if method in ("hicp", "icp"):
@@ -238,7 +246,9 @@ def refine_pair(
     row.update({f"ref_{k}": v for k, v in zip(SD, sd_r, strict=True)})
     row.update(fit_refined_m=fit_r, pairs_refined=pairs_r, at_box_edge=edge)
     if edge:
-        row["reason"] = f"refinement reached the edge of the {s.box_sigmas:g}-sigma box"
+        row["reason"] = (f"refinement reached the edge of the {s.box_sigmas:g}-sigma box" if s.guard == "box" else
+                         f"refinement moved to the edge of its trust region ({100 * s.max_shift_m:g} cm, "
+                         f"{s.max_turn_deg:g} deg)")
     elif pairs_r < s.min_pairs:
         row["reason"] = f"only {pairs_r} point pairs after refinement"
     elif not (fit_r < fit_b * (1.0 - s.min_fit_gain)):
@@ -248,6 +258,34 @@ def refine_pair(
         row["used"] = "refined"
     row["seconds"] = time.perf_counter() - t0
     return row
+
+
+def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings: RefineSettings) -> dict:
+    """Refine one registration both ways and accept it on its own fit
+    (:func:`~.two_way.two_way_refine`); one row of :data:`REFINE_COLUMNS`."""
+    t0 = time.perf_counter()
+    pose = np.asarray(pose, dtype=np.float64)
+    row = dict.fromkeys(REFINE_COLUMNS, np.nan)
+    row.update({f"bnb_{k}": v for k, v in zip(POSE, pose, strict=True)})
+    row.update({f"bnb_{k}": v for k, v in zip(SD, np.nan_to_num(np.asarray(sd, dtype=np.float64)), strict=True)})
+    res = two_way_refine(scan, ref, pose, settings)
+    new, dis = res["pose"], res["disagree"]
+    row.update({f"ref_{k}": v for k, v in zip(POSE, new, strict=True)})
+    row.update({f"ref_{k}": v for k, v in zip(SD, res["sd"], strict=True)})
+    row.update(method="point_to_plane", used="refined" if res["used"] else "branch_and_bound", reason=res["reason"],
+               fit_bnb_m=res["fit_bnb_m"], fit_refined_m=res["fit_refined_m"], pairs_bnb=res["pairs_bnb"],
+               pairs_refined=res["pairs_refined"], iterations=res["iterations"], converged=True, at_box_edge=False,
+               n_data=res["n_data"], n_model=res["n_model"],
+               moved_xy_m=float(np.hypot(*(new[:2] - pose[:2]))), moved_z_m=float(new[2] - pose[2]),
+               moved_heading_deg=float(wrap_deg(new[3] - pose[3])), disagree_xy_m=float(np.hypot(dis[0], dis[1])),
+               disagree_z_m=float(dis[2]), disagree_heading_deg=float(dis[3]))
+    row["seconds"] = time.perf_counter() - t0
+    return row
+
+
+def _resolved_method(s: RefineSettings, colour: bool) -> str:
+    method = s.method if s.method != "auto" else ("hicp" if colour else "point_to_plane")
+    return "point_to_plane" if method == "hicp" and not colour else method
 
 
 def refine_registrations(
@@ -264,12 +302,22 @@ def refine_registrations(
     regs = registrations.copy()
     rows = []
     accepted = regs.index[regs["status"] == "accepted"] if len(regs) else []
+    prepared: dict[str, RefineCloud] = {}  # per scan, shared by all its pairs
+
+    def prepared_cloud(sid: str) -> RefineCloud:
+        if sid not in prepared:
+            prepared[sid] = RefineCloud.from_points(clouds[sid][0], s)
+        return prepared[sid]
+
     for k, i in enumerate(accepted):
         r = regs.loc[i]
         scan, ref = clouds.get(r["scan"]), clouds.get(r["reference"])
         if scan is None or ref is None:
             row = dict.fromkeys(REFINE_COLUMNS, np.nan)
             row.update(used="branch_and_bound", reason="range image missing", method=s.method)
+        elif s.guard == "fit" and _resolved_method(s, scan[1] is not None and ref[1] is not None) == "point_to_plane":
+            row = refine_pair_two_way(prepared_cloud(r["scan"]), prepared_cloud(r["reference"]),
+                                      r[POSE].to_numpy(float), r[SD].to_numpy(float), s)
         else:
             row = refine_pair(scan[0], ref[0], r[POSE].to_numpy(float), r[SD].to_numpy(float),
                               scan[1], ref[1], s)
