@@ -40,7 +40,7 @@ CODE_VERSIONS: dict[str, str] = {
     "optimal_map": "3",
     "residual_checks": "1",
     "integrated_map": "2",
-    "tree_list": "4",
+    "tree_list": "5",
 }
 
 # Which parameter sections each stage reads (their hash enters the code version).
@@ -58,7 +58,7 @@ STAGE_PARAMS: dict[str, tuple[str, ...]] = {
     "optimal_map": ("mapping",),
     "residual_checks": ("mapping",),
     "integrated_map": ("elevation",),
-    "tree_list": (),
+    "tree_list": ("trees",),
 }
 
 # The pipeline's assets in DESIGN.md section 5 order, with their granularity.

@@ -175,23 +175,39 @@ def mapping_assets(campaign: Campaign) -> list:
             meta["elevation_map"] = png_metadata(elevation_figure(grid, placed, crop=False, title=f"{campaign.name}: merged elevation map"))
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
+    tp = params.trees
+    by_slice = tp.dbh_method == "slice"
+
     @asset(
         key=key("tree_list"),
-        ins={"integrated_map": AssetIn(key=key("integrated_map"))},
+        ins={"integrated_map": AssetIn(key=key("integrated_map")),
+             **({"range_images": all_scans(key("range_images"))} if by_slice else {})},
         group_name="map",
         code_version=code_version(campaign, "tree_list"),
         description="One row per physical tree, cylinders of all scans merged: stem position at "
         "breast height (1.3 m above the ground under the stem), ground z, DBH, and dbh_note: how "
         "a DBH not measured at breast height was obtained or why there is none (forestmap's step "
-        "beyond the thesis; core/mapping/trees.py).",
+        "beyond the thesis; core/mapping/trees.py). With trees.dbh_method 'slice' the DBH is the "
+        "mean diameter of an outline fitted to the registered points of every scan in a slice "
+        "at breast height, the cylinders' where the slice has too few points "
+        "(core/mapping/stem_slices.py).",
     )
     @timed
-    def tree_list(context, integrated_map):
+    def tree_list(context, integrated_map, **raw):  # raw: {"range_images": ...} with the slice DBH
         grid = elevation_from_table(integrated_map["elevation"])
-        trees, _ = merge_trees(integrated_map["cylinders"], grid)
+        trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid)
+        from_slice = 0
+        if by_slice:
+            from forestmap_assets.core.mapping.stem_slices import merged_slice_dbh
+
+            clouds = {sid: np.column_stack([tbl.column(c).to_numpy() for c in "xyz"])
+                      for sid, tbl in (raw.get("range_images") or {}).items()}
+            trees, fits = merged_slice_dbh(trees, integrated_map["cylinders"], tree_of_cyl, clouds,
+                                           integrated_map["scans"], tp)
+            from_slice = int((fits["reason"] == "").sum())
         dbh = trees["dbh_m"].dropna()
         noted = trees["dbh_note"].astype(bool)
-        meta = {"trees": len(trees), "with_dbh": int(len(dbh)),
+        meta = {"trees": len(trees), "with_dbh": int(len(dbh)), "dbh_from_slice": from_slice,
                 "dbh_with_note": int((noted & trees["dbh_m"].notna()).sum()),
                 "median_dbh_m": round(float(dbh.median()), 3) if len(dbh) else 0.0,
                 "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum()),

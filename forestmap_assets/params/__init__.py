@@ -198,6 +198,35 @@ class MappingParams(_Stage):
     refined_scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
 
 
+class TreeParams(_Stage):
+    """Tree list: DBH source (forestmap's step beyond the thesis; core/mapping/trees.py,
+    core/mapping/stem_slices.py; all values inferred, issue 19)."""
+
+    # slice: outline of the merged registered points at breast height; cylinders: twice the
+    # weighted cylinder radius at 1.3 m (the DBH before issue 19, and the fallback of a slice)
+    dbh_method: Literal["slice", "cylinders"] = "slice"
+    slice_half_height_m: float = 0.1  # slice 1.2-1.4 m above the ground under the stem
+    slice_gate_factor: float = 1.5  # points within 1.5 x the cylinder radius + margin of the axis
+    slice_gate_margin_m: float = 0.05
+    slice_max_incidence_deg: float = 65.0  # grazing points left out
+    # and those within 1.5 beam footprint radii (spec 1.1) of a scan's silhouette edge: mixed
+    # pixels overhang the stem by up to a footprint (+3 cm in simulation), grazing bark reads high
+    slice_edge_footprints: float = 1.5
+    slice_bin_deg: float = 10.0  # angle bins of the outline fit
+    slice_min_points: int = 30
+    # circumference with points, else the cylinders: an arc seen from one side (about 120 deg
+    # once its edges are left out) fits a mean radius off by centimetres at 2.5 cm range noise
+    slice_min_coverage_deg: float = 180.0
+    slice_ellipse_prior: float = 0.05  # sd of the ellipse terms, share of the mean radius
+    slice_trim_sigmas: float = 3.0  # points farther from the outline are outliers (branches)
+    slice_outline_sd_m: float = 0.005  # relief of the outline a bin mean cannot average out (bark)
+    # sd of the cylinders' radius as the prior of the slice's mean radius (0: none): a stem seen
+    # from one side only keeps about its cylinder DBH, one seen all round takes the slice's
+    slice_cylinder_sd_m: float = 0.01
+    slice_max_change: float = 0.5  # slice DBH further than this share from the cylinders': cylinders
+    range_sigma_m: float = 0.025  # range noise (Table 6.1), for the bias of noisy point distances
+
+
 def _section_from_config(name: str, config: type) -> type[_Stage]:
     """A parameter section with the fields and defaults of a core settings dataclass, so the
     stages of Men 2012 (refinement, exploration) are configured like every other stage."""
@@ -249,6 +278,7 @@ class Params(BaseModel):
     registration: RegistrationParams = RegistrationParams()
     refine: RefineParams = RefineParams()  # type: ignore[valid-type]
     mapping: MappingParams = MappingParams()
+    trees: TreeParams = TreeParams()
     occlusion: OcclusionParams = OcclusionParams()  # type: ignore[valid-type]
     exploration: ExplorationParams = ExplorationParams()  # type: ignore[valid-type]
 

@@ -1,0 +1,299 @@
+"""DBH from the merged, registered points of a thin slice at breast height (issue 19, inferred).
+
+The cylinder DBH of :func:`~forestmap_assets.core.mapping.trees.merge_trees` averages the radii
+of circles fitted to one scan's arc at a time. An out-of-round stem seen from one side shows the
+local curvature of its section, not its mean radius (an ellipse of flattening 10 % has radii of
+curvature 15 % above and below the mean), so per-scan arcs are biased one way or the other.
+Here the points of every registered scan in a thin horizontal slice about breast height are
+gathered in the global frame (:func:`gather_slices`) and one outline is fitted to the merged
+slice (:func:`slice_dbh`):
+
+1. points beyond ``max_incidence_deg`` from the surface normal, or within ``edge_footprints``
+   beam footprint radii (spec 1.1: ``0.042 + 0.003 r`` m across) of a scan's silhouette edge,
+   are left out: there the footprint overhangs the stem (mixed pixels, +3 cm outside the bark
+   in simulation) and grazing bark reads high (+0.5-1 cm);
+2. the points are binned by angle about the current centre; each bin gives a trimmed mean
+   distance, and a second-order Fourier outline ``r(psi) = a0 + dx cos psi + dy sin psi +
+   a2 cos 2psi + b2 sin 2psi`` is fitted to the bins by weighted least squares (a bin's
+   variance: its mean's noise plus ``outline_sd_m`` of bark relief, so well-filled bins weigh
+   alike and ``a0`` is the mean radius over angle, not over points), with a ridge prior on the
+   ellipse terms (sd ``ellipse_prior`` x ``a0``: an arc seen from one or two sides cannot tell
+   an ellipse from a shifted circle) and, with ``radius_prior_sd_m``, the cylinders' radius as
+   a prior of ``a0``; ``(dx, dy)`` moves the centre and the fit is repeated; points farther
+   than ``trim_sigmas`` robust sigmas from the outline (branch stubs, understorey) are dropped;
+3. DBH = ``2 a0`` (the simulator's truth: twice the mean radius at 1.3 m of the section,
+   ``sim/stem_shapes.py``), less the small outward bias ``sigma^2 sin^2(i) / (2 r)`` that range
+   noise ``sigma`` at incidence ``i`` adds to a point's distance from the centre.
+
+A slice with fewer than ``min_points`` points or less than ``min_coverage_deg`` of the
+circumference seen (180 deg: a one-sided arc of about 120 deg with 2.5 cm range noise fits
+mean radii centimetres off, worse than the cylinders), or whose outline leaves the plausible
+range around the cylinder radius, gives no estimate and the caller keeps the cylinder DBH
+(:func:`slice_dbhs` says why in ``dbh_note``). Simulated 40 m plots: ``benchmarks/results.md``,
+section "DBH from the merged breast-height slice".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+from forestmap_assets.core.geometry import transform_points
+
+SLICE_COLUMNS = ["tree", "x", "y", "z", "scan"]
+
+
+@dataclass(frozen=True)
+class SliceFit:
+    """Result of :func:`slice_dbh`: ``dbh_m`` NaN when the slice gave no estimate (``reason``)."""
+
+    dbh_m: float
+    x: float
+    y: float
+    n_points: int
+    coverage_deg: float
+    rms_m: float
+    reason: str = ""
+    sd_m: float = float("nan")
+
+
+def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
+                z_max: np.ndarray | None = None, max_slope: float = 0.3) -> np.ndarray:
+    """Lean (dx/dz, dy/dz) of each tree (1-based ``tree_of_cyl``), the ``n_circles``-weighted
+    mean of its cylinders' axes (only those starting below ``z_max`` of their tree when given),
+    clipped to ``max_slope``; zero for a tree without such a cylinder."""
+    out = np.zeros((n_trees, 2))
+    if len(cyl) == 0 or n_trees == 0:
+        return out
+    p0 = cyl[["x0", "y0", "z0"]].to_numpy(float)
+    p1 = cyl[["x1", "y1", "z1"]].to_numpy(float)
+    dz = p1[:, 2] - p0[:, 2]
+    ok = np.abs(dz) > 0.05
+    slope = np.where(ok[:, None], (p1[:, :2] - p0[:, :2]) / np.where(ok, dz, 1.0)[:, None], 0.0)
+    k = np.asarray(tree_of_cyl, dtype=int) - 1
+    if z_max is not None:
+        ok &= np.minimum(p0[:, 2], p1[:, 2]) < np.asarray(z_max, float)[k]
+    w = np.where(ok, cyl["n_circles"].to_numpy(float), 0.0)
+    sw = np.bincount(k, w, minlength=n_trees)
+    for j in range(2):
+        num = np.bincount(k, w * slope[:, j], minlength=n_trees)
+        out[:, j] = np.where(sw > 0, num / np.where(sw > 0, sw, 1.0), 0.0)
+    return np.clip(out, -max_slope, max_slope)
+
+
+def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame, *,
+                  half_height_m: float = 0.1, gate_factor: float = 1.5,
+                  gate_margin_m: float = 0.05) -> tuple[pd.DataFrame, np.ndarray]:
+    """Points of every registered scan in each stem's breast-height slice, global frame.
+
+    ``clouds`` maps scan id to its levelled points (n, 3) in the scanner frame; ``poses`` has
+    ``scan, x, y, z, heading_deg`` of the placed scans (spec 6.1: ``p' = R_z(heading) p + t``);
+    ``stems`` has ``x, y`` (axis at breast height), ``zbh`` (breast height, global z),
+    ``radius_m`` (approximate) and optionally ``slope_x, slope_y`` (lean). A point belongs to
+    the slice of the nearest stem when it lies within ``half_height_m`` of its breast height and
+    within ``gate_factor`` x radius + ``gate_margin_m`` of its axis at the point's height.
+
+    Returns ``SLICE_COLUMNS`` (``tree`` the 0-based row of ``stems``, ``x, y`` moved along the
+    axis to breast height, ``z`` the original height, ``scan`` the index into ``clouds``) and the
+    sensor position (scans, 2) of each scan index. One k-d tree query per scan."""
+    scan_ids = list(clouds)
+    sensors = np.full((len(scan_ids), 2), np.nan)
+    empty = pd.DataFrame({c: pd.Series(dtype="int64" if c in ("tree", "scan") else "float64")
+                          for c in SLICE_COLUMNS})
+    if len(stems) == 0:
+        return empty, sensors
+    centre = stems[["x", "y"]].to_numpy(float)
+    zbh = stems["zbh"].to_numpy(float)
+    slope = (stems[["slope_x", "slope_y"]].to_numpy(float) if {"slope_x", "slope_y"} <= set(stems)
+             else np.zeros((len(stems), 2)))
+    reach = gate_factor * stems["radius_m"].to_numpy(float) + gate_margin_m
+    reach_max = float(np.max(reach + np.hypot(*slope.T) * half_height_m))
+    tree = cKDTree(centre)
+    placed = poses.set_index("scan")
+    parts = []
+    for index, sid in enumerate(scan_ids):
+        xyz = clouds[sid]
+        if sid not in placed.index or xyz is None or len(xyz) == 0:
+            continue
+        pose = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
+        sensors[index] = pose[:2]
+        z = np.asarray(xyz[:, 2], np.float64) + pose[2]
+        near = (z >= zbh.min() - half_height_m) & (z <= zbh.max() + half_height_m)
+        p = transform_points(np.asarray(xyz[near], np.float64), pose)
+        _, k = tree.query(p[:, :2], distance_upper_bound=reach_max)
+        hit = k < len(stems)
+        p, k = p[hit], k[hit]
+        dz = p[:, 2] - zbh[k]
+        xy = p[:, :2] - slope[k] * dz[:, None]
+        keep = (np.abs(dz) <= half_height_m) & (np.hypot(*(xy - centre[k]).T) <= reach[k])
+        parts.append(pd.DataFrame({"tree": k[keep], "x": xy[keep, 0], "y": xy[keep, 1],
+                                   "z": p[keep, 2], "scan": np.full(int(keep.sum()), index)}))
+    if not parts:
+        return empty, sensors
+    return pd.concat(parts, ignore_index=True)[SLICE_COLUMNS], sensors
+
+
+def _bin_means(bins: np.ndarray, values: np.ndarray, n_bins: int,
+               trim: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+    """Per-bin trimmed mean of ``values`` (the central ``1 - 2 trim`` share) and the count of
+    points per bin (vectorised: one sort by bin then value)."""
+    order = np.lexsort((values, bins))
+    b, v = bins[order], values[order]
+    count = np.bincount(b, minlength=n_bins)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    rank = np.arange(b.size) - start[b]
+    cut = np.floor(trim * count).astype(int)
+    keep = (rank >= cut[b]) & (rank < (count - cut)[b])
+    total = np.bincount(b[keep], v[keep], minlength=n_bins)
+    kept = np.bincount(b[keep], minlength=n_bins)
+    return np.where(kept > 0, total / np.maximum(kept, 1), np.nan), count
+
+
+def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float, float],
+              radius_m: float, *, max_incidence_deg: float = 65.0, bin_deg: float = 10.0,
+              min_points: int = 30, min_coverage_deg: float = 180.0, ellipse_prior: float = 0.05,
+              trim_sigmas: float = 3.0, range_sigma_m: float = 0.025, outline_sd_m: float = 0.005,
+              radius_prior_sd_m: float | None = None, edge_footprints: float = 1.5,
+              beam_exit_m: float = 0.042, beam_divergence_rad: float = 0.003,
+              radius_range: tuple[float, float] = (0.5, 1.6), iterations: int = 6) -> SliceFit:
+    """DBH of one stem from its merged slice points ``xy`` (n, 2), seen from ``sensor_xy``
+    (n, 2; None: no incidence test), starting from the axis ``centre`` and ``radius_m`` (the
+    cylinders'); the method is in the module docstring. ``radius_range`` (shares of
+    ``radius_m``) bounds a plausible mean radius; outside it the slice gives no estimate."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    c = np.asarray(centre, np.float64).copy()
+    n_bins = max(4, int(round(360.0 / bin_deg)))
+    none = SliceFit(np.nan, c[0], c[1], len(xy), 0.0, np.nan)
+    if len(xy) < min_points or not np.isfinite(radius_m) or radius_m <= 0:
+        return _with(none, reason=f"{len(xy)} points")
+    sin_max = np.sin(np.radians(max_incidence_deg))
+    keep = np.ones(len(xy), bool)
+    a0, theta, sigma, sd = float(radius_m), np.zeros(5), max(0.5 * radius_m, 0.02), np.nan
+    cos_i = np.ones(len(xy))
+    coverage, rms = 0.0, np.nan
+    for it in range(iterations):
+        v = xy - c
+        d = np.hypot(*v.T)
+        psi = np.arctan2(v[:, 1], v[:, 0])
+        model = a0 + theta[3] * np.cos(2 * psi) + theta[4] * np.sin(2 * psi)
+        keep = np.abs(d - model) <= max(trim_sigmas * sigma, 0.01) if it else (
+            (d > 0.5 * radius_m) & (d < radius_range[1] * radius_m + 0.05))
+        if sensor_xy is not None:  # off the silhouette's edges (mixed pixels, grazing bark)
+            ray = xy - sensor_xy
+            rng_m = np.maximum(np.hypot(*ray.T), 1e-9)
+            to_c = c - sensor_xy
+            lateral = np.abs(ray[:, 0] * to_c[:, 1] - ray[:, 1] * to_c[:, 0]) / rng_m
+            footprint = 0.5 * (beam_exit_m + beam_divergence_rad * np.hypot(*to_c.T))
+            keep &= lateral <= np.minimum(a0 * sin_max, a0 - edge_footprints * footprint)
+            cos_i = np.sqrt(np.clip(1.0 - (lateral / a0) ** 2, 0.0, 1.0))
+        if keep.sum() < min_points:
+            return _with(none, n_points=int(keep.sum()), reason=f"{int(keep.sum())} points")
+        b = np.minimum(((psi[keep] + np.pi) / (2 * np.pi) * n_bins).astype(int), n_bins - 1)
+        mean_d, count = _bin_means(b, d[keep], n_bins)
+        filled = count >= 2
+        coverage = float(filled.sum() * 360.0 / n_bins)
+        if coverage < min_coverage_deg:
+            return _with(none, n_points=int(keep.sum()), coverage_deg=coverage,
+                         reason=f"{coverage:.0f} deg of the circumference seen")
+        ang = np.angle(np.bincount(b, np.exp(1j * psi[keep]).real, minlength=n_bins)
+                       + 1j * np.bincount(b, np.exp(1j * psi[keep]).imag, minlength=n_bins))[filled]
+        A = np.column_stack([np.ones(ang.size), np.cos(ang), np.sin(ang), np.cos(2 * ang), np.sin(2 * ang)])
+        resid_pts = d[keep] - (a0 + theta[3] * np.cos(2 * psi[keep]) + theta[4] * np.sin(2 * psi[keep]))
+        sigma = max(1.4826 * float(np.median(np.abs(resid_pts - np.median(resid_pts)))), 0.003)
+        # bin variance: the trimmed mean's noise plus the outline's own relief (bark, flutes)
+        W = 1.0 / (sigma**2 / np.maximum(count[filled] * 0.6, 1.0) + outline_sd_m**2)
+        lam, prior = np.zeros(5), np.zeros(5)
+        lam[3:] = 1.0 / (ellipse_prior * a0) ** 2
+        if radius_prior_sd_m:  # the cylinders' radius as a prior of the mean radius
+            lam[0], prior[0] = 1.0 / radius_prior_sd_m**2, radius_m / radius_prior_sd_m**2
+        normal = A.T @ (A * W[:, None]) + np.diag(lam)
+        a = np.linalg.solve(normal, A.T @ (W * mean_d[filled]) + prior)
+        sd = float(np.sqrt(np.linalg.inv(normal)[0, 0]))
+        c = c + a[1:3]
+        a0, theta = float(a[0]), a
+        rms = float(np.sqrt(np.average((mean_d[filled] - A @ a) ** 2, weights=W)))
+        if not (radius_range[0] * radius_m <= a0 <= radius_range[1] * radius_m) or (
+                np.hypot(*(c - centre)) > radius_m):
+            return _with(none, n_points=int(keep.sum()), coverage_deg=coverage,
+                         reason=f"outline radius {a0 * 100:.1f} cm off the cylinders' {radius_m * 100:.1f} cm")
+        if np.hypot(*a[1:3]) < 2e-4:
+            break
+    # outward bias of a noisy point's distance from the centre: E[d] - r = sigma^2 sin^2(i) / 2r
+    sin2 = np.clip(1.0 - cos_i[keep] ** 2, 0.0, 1.0) if sensor_xy is not None else 0.5
+    bias = float(np.mean(range_sigma_m**2 * sin2 / (2.0 * a0)))
+    return SliceFit(2.0 * (a0 - bias), float(c[0]), float(c[1]), int(keep.sum()), coverage, rms,
+                    sd_m=2.0 * sd)
+
+
+def _with(fit: SliceFit, **changes) -> SliceFit:
+    return SliceFit(**{**fit.__dict__, **changes})
+
+
+def slice_dbhs(trees: pd.DataFrame, slices: pd.DataFrame, sensors: np.ndarray, *,
+               max_change: float = 0.5, **fit_kw) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``trees`` (``TREE_COLUMNS``, rows in the order of the slices' ``tree`` index) with the DBH
+    from each stem's slice (:func:`slice_dbh`, keywords ``fit_kw``) where it gives one within
+    ``max_change`` (share) of the cylinder DBH; elsewhere the cylinder DBH stays and
+    ``dbh_note`` says why. Also a table of the fits (``tree_id, dbh_slice_m, dbh_cylinders_m,
+    n_points, coverage_deg, rms_m, reason``)."""
+    out = trees.copy()
+    order = np.argsort(slices["tree"].to_numpy(), kind="stable")
+    s = slices.iloc[order]
+    k = s["tree"].to_numpy()
+    bounds = np.searchsorted(k, np.arange(len(trees) + 1))
+    xy = s[["x", "y"]].to_numpy(float)
+    sens = sensors[s["scan"].to_numpy()] if len(s) else np.zeros((0, 2))
+    rows, dbh, notes = [], out["dbh_m"].to_numpy(float).copy(), out["dbh_note"].astype(str).tolist()
+    for i in range(len(trees)):
+        old = dbh[i]
+        lo, hi = bounds[i], bounds[i + 1]
+        if not np.isfinite(old):
+            fit = SliceFit(np.nan, np.nan, np.nan, hi - lo, 0.0, np.nan, "no cylinder DBH to start from")
+        else:
+            fit = slice_dbh(xy[lo:hi], sens[lo:hi], (out["x"].iat[i], out["y"].iat[i]), old / 2, **fit_kw)
+        reason = fit.reason
+        if not reason and abs(fit.dbh_m - old) > max_change * old:
+            reason = f"slice DBH {fit.dbh_m * 100:.1f} cm too far from the cylinders'"
+        rows.append((out["tree_id"].iat[i], fit.dbh_m, old, fit.sd_m, fit.n_points, fit.coverage_deg, fit.rms_m,
+                     reason))
+        if not np.isfinite(old):
+            continue
+        ground = [p for p in notes[i].split("; ") if p.startswith("ground under the stem not seen")]
+        if reason:
+            notes[i] = "; ".join(filter(None, [notes[i], f"DBH from the cylinders: breast-height slice {reason}"]))
+        else:
+            dbh[i] = fit.dbh_m
+            notes[i] = "; ".join(ground)
+    out["dbh_m"] = dbh
+    out["dbh_note"] = notes
+    fits = pd.DataFrame(rows, columns=["tree_id", "dbh_slice_m", "dbh_cylinders_m", "sd_m", "n_points",
+                                       "coverage_deg", "rms_m", "reason"])
+    return out, fits
+
+
+def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
+                     clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, tp,
+                     breast_height_m: float = 1.3) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The tree list of :func:`~forestmap_assets.core.mapping.trees.merge_trees` (``trees``,
+    ``tree_of_cyl`` over the global cylinders ``cyl``) with DBH from the breast-height slices of
+    the registered scans' levelled points ``clouds`` placed with ``poses``; ``tp`` is the tree
+    parameter section (``params.TreeParams``). Returns the trees and the per-tree fits of
+    :func:`slice_dbhs`."""
+    zbh = trees["z"].to_numpy(float) + breast_height_m
+    slopes = axis_slopes(cyl, tree_of_cyl, len(trees), z_max=zbh + 2.0)
+    stems = pd.DataFrame({"x": trees["x"].to_numpy(float), "y": trees["y"].to_numpy(float), "zbh": zbh,
+                          "radius_m": np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0),
+                          "slope_x": slopes[:, 0], "slope_y": slopes[:, 1]})
+    slices, sensors = gather_slices(clouds, poses, stems, half_height_m=tp.slice_half_height_m,
+                                    gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
+    return slice_dbhs(trees, slices, sensors, max_change=tp.slice_max_change,
+                      max_incidence_deg=tp.slice_max_incidence_deg, bin_deg=tp.slice_bin_deg,
+                      min_points=tp.slice_min_points, min_coverage_deg=tp.slice_min_coverage_deg,
+                      ellipse_prior=tp.slice_ellipse_prior, trim_sigmas=tp.slice_trim_sigmas,
+                      range_sigma_m=tp.range_sigma_m, outline_sd_m=tp.slice_outline_sd_m,
+                      radius_prior_sd_m=tp.slice_cylinder_sd_m or None,
+                      edge_footprints=tp.slice_edge_footprints)
