@@ -34,7 +34,7 @@ CODE_VERSIONS: dict[str, str] = {
     "line_segments": "1",
     "elevation_maps": "1",
     "submaps": "1",
-    "candidate_pairs": "1",
+    "candidate_pairs": "2",
     "pairwise_registrations": "2",
     "refined_registrations": "2",
     "optimal_map": "3",

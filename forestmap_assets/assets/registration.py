@@ -7,6 +7,7 @@ ICP or point-to-plane, used where it fits better; :mod:`forestmap_assets.core.re
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 from dagster import AssetIn, MetadataValue, Output, asset
 
 from forestmap_assets.assets.common import (
@@ -54,31 +55,45 @@ def registration_assets(campaign: Campaign) -> list:
         return asset_key(campaign, stage)
 
     fourier = params.registration.no_prior_method == "fourier"  # raw points for the coarse step
+    # stem-layout screening of the no-prior pairs reads the cylinder segments (inferred, issue 17)
+    no_prior = not campaign.pairs and any(s.a_priori is None for s in campaign.scans)
+    screen = no_prior and params.registration.screening and params.registration.screen_keep > 0
 
     @asset(
         key=key("candidate_pairs"),
         ins={"submaps": all_scans(key("submaps")),
-             **({"range_images": all_scans(key("range_images"))} if fourier else {})},
+             **({"range_images": all_scans(key("range_images"))} if fourier else {}),
+             **({"cylinder_segments": all_scans(key("cylinder_segments"))} if screen else {})},
         group_name="registration",
         code_version=code_version(campaign, "candidate_pairs"),
         description="Which sub-map pairs to register and their search boxes: the campaign's "
         "a priori pairs, else pairs of overlapping a priori poses, else every pair with a "
         "no-prior box (full heading circle, xy box of the scans' reach) (thesis 5.4; spec 6.4); "
         "with registration.no_prior_method 'fourier', no-prior boxes centred on the Fourier coarse "
-        "registration of the raw points (men spec 4).",
+        "registration of the raw points (men spec 4). Without priors, registration.screening "
+        "keeps each scan's best registration.screen_keep partners by a stem-layout comparison "
+        "(column screen_score; inferred, issue 17).",
     )
     @timed
-    def candidate_pairs(context, submaps, **raw):  # raw: {"range_images": ...} with fourier
+    def candidate_pairs(context, submaps, **raw):  # raw: range_images (fourier), cylinder_segments (screening)
         submaps = submaps or {}
         reg = params.registration
         pairs = [(p.scan, p.reference, p.a_priori, p.search) for p in campaign.pairs] or None
         priors = {s.id: s.a_priori for s in campaign.scans if s.a_priori is not None}
         a_priori = priors if len(priors) == len(campaign.scans) and not pairs else None
         reach = {sid: submap_reach(df) for sid, df in submaps.items()}
+        stems = None
+        if screen:
+            from forestmap_assets.core.registration.screening import stems_from_cylinders
+
+            cylinders = raw.get("cylinder_segments") or {}
+            stems = {sid: stems_from_cylinders(cylinders.get(sid)) for sid in submaps}
         table = make_candidates(
             list(submaps), pairs=[p for p in pairs if p[0] in submaps and p[1] in submaps] if pairs else None,
             a_priori=a_priori, search=(reg.xy_m, reg.z_m, reg.heading_deg), reach=reach,
             k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
+            stems=stems, screen_keep=reg.screen_keep if screen else 0,
+            progress=lambda m: (context.log.info(m), report(m)),
         )
         if fourier and len(table) and (table["source"] == "no_prior").any():
             from forestmap_assets.core.features.range_image import RangeImage
@@ -89,6 +104,7 @@ def registration_assets(campaign: Campaign) -> list:
             table = coarse_candidates(table, clouds, search=(reg.xy_m, reg.z_m, reg.heading_deg),
                                       progress=lambda m: (context.log.info(m), report(m)))
         meta = {"pairs": len(table), "source": str(table["source"].iloc[0]) if len(table) else "none",
+                "screened": bool(screen and len(submaps) > reg.screen_keep + 1),
                 "table": md_table(table)}
         return Output(table, metadata=meta, data_version=data_version(table))
 
@@ -98,27 +114,52 @@ def registration_assets(campaign: Campaign) -> list:
             "candidate_pairs": AssetIn(key=key("candidate_pairs")),
             "submaps": all_scans(key("submaps")),
             "elevation_maps": all_scans(key("elevation_maps")),
+            **({"cylinder_segments": all_scans(key("cylinder_segments"))} if screen else {}),
         },
         group_name="registration",
         code_version=code_version(campaign, "pairwise_registrations"),
         description="Globally optimal 4-DoF registration of every candidate pair by branch and "
         "bound over Olson's score: best cell, score-weighted cloud centre and sigma (JP eq. 6), "
         "every level's surviving cells, secondary hypotheses (thesis 5.3.3; spec 6.3-6.7); dz "
-        "refined from the ground elevation maps (spec 9's proposed use).",
+        "refined from the ground elevation maps (spec 9's proposed use). With screening, scans "
+        "the accepted pairs leave unplaced are retried against their next best screened partners "
+        "(inferred, issue 17).",
     )
     @timed
-    def pairwise_registrations(context, candidate_pairs, submaps, elevation_maps):
-        bundle = register_candidates(candidate_pairs, submaps or {}, params.registration,
-                                     elevation=elevation_maps or {}, elevation_cell_m=params.elevation.cell_m,
-                                     likelihood_temperature=params.registration.likelihood_temperature,
-                                     heading_temperature=params.registration.heading_temperature,
-                                     ground_min_sd_m=params.registration.ground_min_sd_m,
-                                     feature_z_sd_m=params.registration.feature_z_sd_m,
-                                     progress=lambda m: (context.log.info(m), report(m)))
+    def pairwise_registrations(context, candidate_pairs, submaps, elevation_maps, **raw):
+        reg = params.registration
+        progress = lambda m: (context.log.info(m), report(m))  # noqa: E731
+
+        def register(table):
+            return register_candidates(table, submaps or {}, reg,
+                                       elevation=elevation_maps or {}, elevation_cell_m=params.elevation.cell_m,
+                                       likelihood_temperature=reg.likelihood_temperature,
+                                       heading_temperature=reg.heading_temperature,
+                                       ground_min_sd_m=reg.ground_min_sd_m,
+                                       feature_z_sd_m=reg.feature_z_sd_m, progress=progress)
+
+        bundle = register(candidate_pairs)
+        retried = 0
+        if screen and len(submaps or {}) > reg.screen_keep + 1:  # issue 17: retry unplaced scans
+            from forestmap_assets.core.registration.candidates import retry_candidates
+            from forestmap_assets.core.registration.screening import stems_from_cylinders
+
+            cylinders = raw.get("cylinder_segments") or {}
+            extra = retry_candidates(
+                list(submaps), candidate_pairs, bundle["registrations"],
+                {sid: stems_from_cylinders(cylinders.get(sid)) for sid in submaps},
+                keep=reg.screen_keep, search=(reg.xy_m, reg.z_m, reg.heading_deg),
+                reach={sid: submap_reach(df) for sid, df in submaps.items()}, max_xy_m=reg.max_xy_m)
+            if len(extra):
+                progress(f"retrying {len(extra)} pairs of unplaced scans")
+                more = register(extra)
+                bundle = {k: pd.concat([v, more[k]], ignore_index=True) for k, v in bundle.items()}
+                retried = len(extra)
         regs = bundle["registrations"]
         counts = regs["status"].value_counts().to_dict()
         meta = {
             "pairs": len(regs),
+            "retried": retried,
             "accepted": int(counts.get("accepted", 0)),
             "rejected": int(counts.get("rejected", 0)),
             "failed": int(counts.get("failed", 0)),

@@ -177,6 +177,13 @@ class RegistrationParams(_Stage):
     k_nearest: int = 4
     max_distance_m: float = 30.0
     max_xy_m: float = 20.0
+    # candidate screening without a prior (core/registration/screening.py; inferred, issue 17):
+    # score every pair by its matching stems (x, y, radius of the cylinder segments), search only
+    # each scan's screen_keep best partners and a maximum spanning tree of the scores (at most
+    # (screen_keep + 1) * N pairs); False or screen_keep 0: every pair (off in the structured
+    # presets, whose sub-maps are walls and pillar rows)
+    screening: bool = True
+    screen_keep: int = 4
 
 
 class MappingParams(_Stage):
@@ -308,7 +315,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "cylinders": {"min_length_m": 0.3, "curvature_deg": 10.0},
         "registration": {"xy_m": 10.0, "z_m": 1.25, "heading_deg": 100.0, "final_cell_m": 0.156,
                          "min_matched_stems": 3, "max_rival_ratio": 0.6,
-                         "history_max_cell_m": 0.3, "bound": "cell"},
+                         "history_max_cell_m": 0.3, "bound": "cell", "screening": False},
     },
     "indoor": {
         "segmentation": {"min_width_m": 0.2},
@@ -327,7 +334,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         },
         "registration": {"xy_m": 5.0, "z_m": 0.625, "heading_deg": 30.0, "final_cell_m": 0.0195,
                          "min_matched_stems": 2, "max_rival_ratio": 0.6,
-                         "history_max_cell_m": 0.3, "bound": "cell"},
+                         "history_max_cell_m": 0.3, "bound": "cell", "screening": False},
     },
 }
 

@@ -9,7 +9,11 @@ Three sources, in order of precedence:
   most ``k_nearest * N`` pairs (linear growth, inferred). Centre = the relative pose of the priors.
 * neither: every pair, with the no-prior box of DESIGN.md 2: heading the full circle (centre 0,
   half-width 180 deg), xy half-width the smaller of the two reaches capped at ``max_xy_m``
-  (inferred), z half-width from ``search``.
+  (inferred), z half-width from ``search``. With the scans' ``stems`` and ``screen_keep`` > 0,
+  only each scan's ``screen_keep`` best partners by the stem-layout screening of
+  :mod:`.screening` (inferred, issue 17): the union grows at most as ``screen_keep * N``;
+  campaigns of at most ``screen_keep + 1`` scans keep every pair. ``screen_score`` (matched
+  stems; NaN where not screened) is in the table either way.
 """
 
 from __future__ import annotations
@@ -18,17 +22,24 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.geometry import relative_pose
+from forestmap_assets.core.registration.screening import (
+    ScreenSettings,
+    keep_best,
+    pair_table,
+    screen_pair,
+    screen_scores,
+)
 
 CANDIDATE_COLUMNS = (
     "scan", "reference", "cx", "cy", "cz", "cheading_deg", "hx", "hy", "hz", "hheading_deg",
-    "source", "box_heading_deg",
+    "source", "box_heading_deg", "screen_score",
 )
 
 
 def _table(rows: list[dict]) -> pd.DataFrame:
     df = pd.DataFrame(rows, columns=list(CANDIDATE_COLUMNS))
     df["box_heading_deg"] = df["box_heading_deg"].fillna(0.0)
-    for c in (*CANDIDATE_COLUMNS[2:10], "box_heading_deg"):
+    for c in (*CANDIDATE_COLUMNS[2:10], "box_heading_deg", "screen_score"):
         df[c] = df[c].astype(float)
     df["scan"] = df["scan"].astype(object)
     df["reference"] = df["reference"].astype(object)
@@ -46,6 +57,10 @@ def candidate_pairs(
     k_nearest: int = 4,
     max_distance_m: float = 30.0,
     max_xy_m: float = 20.0,
+    stems: dict | None = None,
+    screen_keep: int = 0,
+    screen_settings=None,
+    progress=None,
 ) -> pd.DataFrame:
     """Candidate pairs ``scan, reference`` with box centre ``cx, cy, cz, cheading_deg`` and
     half-widths ``hx, hy, hz, hheading_deg`` (the location of ``scan`` in the levelled frame of
@@ -56,7 +71,9 @@ def candidate_pairs(
     are turned by ``box_heading_deg``, 0 unless ``along_deg`` is given).
     ``search`` = (xy_m, z_m, heading_deg) half-widths; ``reach`` = {scan id: largest horizontal
     distance of its sub-map points from its origin}. ``k_nearest``, ``max_distance_m`` and
-    ``max_xy_m`` are (inferred) parameters.
+    ``max_xy_m`` are (inferred) parameters. ``stems`` = {scan id: (n, 3) ``x, y, radius_m``} and
+    ``screen_keep`` screen the no-prior pairs (module docstring; ``screen_settings``: a
+    :class:`~.screening.ScreenSettings`).
     """
     ids = [str(s) for s in scan_ids]
     xy_m, z_m, heading_deg = (float(v) for v in search)
@@ -96,13 +113,91 @@ def candidate_pairs(
                              cheading_deg=rel[3], hx=xy_m, hy=xy_m, hz=z_m,
                              hheading_deg=heading_deg, source="a_priori"))
         return _table(rows)
+    score: dict[tuple[str, str], float] = {}
+    kept = None
+    if stems is not None and screen_keep > 0:
+        empty = np.zeros((0, 3))
+        table = screen_scores({s: np.asarray(stems.get(s, empty), float) for s in ids},
+                              screen_settings or ScreenSettings(), progress=progress)
+        score = {(r.scan, r.reference): float(r.score) for r in table.itertuples(index=False)}
+        if len(ids) > screen_keep + 1:
+            kept = keep_best(table, screen_keep)
     for i in range(len(ids)):
         for j in range(i + 1, len(ids)):
-            if reach and ids[i] in reach and ids[j] in reach:
-                h = min(float(reach[ids[i]]), float(reach[ids[j]]), max_xy_m)
-            else:
-                h = max(xy_m, max_xy_m) if reach is None else xy_m
-            rows.append(dict(scan=ids[j], reference=ids[i], cx=0.0, cy=0.0, cz=0.0,
-                             cheading_deg=0.0, hx=h, hy=h, hz=z_m, hheading_deg=180.0,
-                             source="no_prior"))
+            if kept is not None and (ids[j], ids[i]) not in kept:
+                continue
+            rows.append(_no_prior_row(ids[j], ids[i], reach, xy_m, z_m, max_xy_m,
+                                      score.get((ids[j], ids[i]), np.nan)))
+    return _table(rows)
+
+
+def _no_prior_row(scan: str, ref: str, reach, xy_m: float, z_m: float, max_xy_m: float, score) -> dict:
+    """A no-prior candidate row (module docstring's box)."""
+    if reach and ref in reach and scan in reach:
+        h = min(float(reach[ref]), float(reach[scan]), max_xy_m)
+    else:
+        h = max(xy_m, max_xy_m) if reach is None else xy_m
+    return dict(scan=scan, reference=ref, cx=0.0, cy=0.0, cz=0.0, cheading_deg=0.0, hx=h, hy=h,
+                hz=z_m, hheading_deg=180.0, source="no_prior", screen_score=score)
+
+
+def retry_candidates(
+    scan_ids,
+    candidates: pd.DataFrame,
+    registrations: pd.DataFrame,
+    stems: dict,
+    *,
+    keep: int = 4,
+    search=(5.0, 1.25, 60.0),
+    reach: dict | None = None,
+    max_xy_m: float = 20.0,
+    screen_settings=None,
+    min_score: int = 3,
+) -> pd.DataFrame:
+    """No-prior candidate rows to retry the scans left unplaced (inferred, issue 17).
+
+    The accepted ``registrations`` link the scans into groups; every scan outside the largest
+    group (ties: the one holding the earliest scan of ``scan_ids``) is screened against the
+    scans of that group, and its ``keep`` best partners not yet in ``candidates`` with at least
+    ``min_score`` matched stems are returned (two stems always match by chance; same box as
+    :func:`candidate_pairs`, ``scan`` the later of the two in ``scan_ids``).
+    Empty when every scan is placed.
+    """
+    ids = [str(s) for s in scan_ids]
+    parent = {s: s for s in ids}
+
+    def root(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    ok = registrations[registrations["status"] == "accepted"] if len(registrations) else registrations
+    for a, b in zip(ok["scan"] if len(ok) else [], ok["reference"] if len(ok) else [], strict=True):
+        if a in parent and b in parent:
+            parent[root(a)] = root(b)
+    groups: dict[str, list[str]] = {}
+    for s in ids:
+        groups.setdefault(root(s), []).append(s)
+    main = max(groups.values(), key=len) if groups else []
+    searched = {frozenset(p) for p in zip(candidates["scan"], candidates["reference"], strict=True)}
+    settings = screen_settings or ScreenSettings()
+    empty = np.zeros((0, 3))
+    table = {s: pair_table(np.asarray(stems.get(s, empty), float), settings) for s in ids}
+    order = {s: n for n, s in enumerate(ids)}
+    rows = []
+    for u in ids:
+        if u in main:
+            continue
+        scored = []
+        for m in main:
+            if frozenset((u, m)) in searched:
+                continue
+            ref, scan = sorted((u, m), key=order.get)
+            score = screen_pair(table[ref], table[scan], settings)[0]
+            if score >= min_score:
+                scored.append((-score, order[m], scan, ref))
+        for neg, _, scan, ref in sorted(scored)[:keep]:
+            rows.append(_no_prior_row(scan, ref, reach, float(search[0]), float(search[1]), max_xy_m,
+                                      float(-neg)))
     return _table(rows)

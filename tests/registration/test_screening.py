@@ -1,0 +1,131 @@
+"""Candidate screening without a prior (inferred, issue 17): stem-layout scores of scan pairs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from forestmap_assets.core.registration.candidates import candidate_pairs
+from forestmap_assets.core.registration.screening import (
+    keep_best,
+    screen_pair,
+    screen_scores,
+    stems_from_cylinders,
+)
+
+
+def _forest(rng, size=(60.0, 60.0), density=0.06):
+    n = rng.poisson(density * size[0] * size[1])
+    xy = rng.uniform((0, 0), size, (n, 2))
+    return np.column_stack([xy, rng.uniform(0.07, 0.3, n)])
+
+
+def _view(rng, forest, centre, reach=14.0, drop=0.2, noise_m=0.03):
+    """Stems a scanner at ``centre`` sees, in its own random frame; and that frame's pose."""
+    d = np.hypot(*(forest[:, :2] - centre).T)
+    seen = forest[(d < reach) & (rng.random(len(forest)) > drop)]
+    h = rng.uniform(-np.pi, np.pi)
+    c, s = np.cos(h), np.sin(h)
+    local = (seen[:, :2] - centre) @ np.array([[c, -s], [s, c]])  # R(-h) (p - centre)
+    local += rng.normal(0, noise_m, local.shape)
+    r = seen[:, 2] + rng.normal(0, 0.01, len(seen))
+    return np.column_stack([local, r]), (centre[0], centre[1], np.degrees(h))
+
+
+def _relative(scan_pose, ref_pose):
+    d = np.subtract(scan_pose[:2], ref_pose[:2])
+    h = np.radians(ref_pose[2])
+    c, s = np.cos(h), np.sin(h)
+    return c * d[0] + s * d[1], -s * d[0] + c * d[1], (scan_pose[2] - ref_pose[2] + 180) % 360 - 180
+
+
+def test_same_layout_scores_far_above_different_layouts():
+    rng = np.random.default_rng(3)
+    forest, other = _forest(rng), _forest(rng)
+    a, pa = _view(rng, forest, np.array([30.0, 30.0]))
+    b, pb = _view(rng, forest, np.array([36.0, 33.0]))  # partial overlap, 6.7 m apart
+    c, _ = _view(rng, other, np.array([33.0, 31.0]))
+    same, motion = screen_pair(a, b)
+    diff, _ = screen_pair(a, c)
+    assert same >= 10 and same >= 3 * max(diff, 1)
+    want = _relative(pb, pa)
+    assert np.hypot(motion[0] - want[0], motion[1] - want[1]) < 0.15
+    assert abs((motion[2] - want[2] + 180) % 360 - 180) < 1.5
+
+
+def _strip(seed, n=8, step=7.0):
+    rng = np.random.default_rng(seed)
+    forest = _forest(rng, size=(20.0 + step * n, 30.0))
+    views = [_view(rng, forest, np.array([10.0 + step * k, 15.0]))[0] for k in range(n)]
+    return {f"s{k}": v for k, v in enumerate(views)}
+
+
+def test_chain_of_views_keeps_every_true_neighbour():
+    for seed in (0, 1):
+        stems = _strip(seed)
+        ids = list(stems)
+        scores = screen_scores(stems)
+        kept = keep_best(scores, 2)
+        assert len(kept) <= 3 * len(ids)
+        for k in range(len(ids) - 1):
+            assert (ids[k + 1], ids[k]) in kept, (seed, k)
+
+
+def test_screening_beats_random_choice():
+    """With one partner per scan, the screened set holds every neighbour pair of the strip; a
+    random choice of the same size almost never does (fails if screening were random)."""
+    stems = _strip(5)
+    ids = list(stems)
+    scores = screen_scores(stems)
+    truth = {(ids[k + 1], ids[k]) for k in range(len(ids) - 1)}
+    kept = keep_best(scores, 1)
+    assert truth <= kept
+    rng = np.random.default_rng(0)
+    shuffled = scores.assign(score=rng.permutation(len(scores)))
+    assert not truth <= keep_best(shuffled, 1)
+    neighbour = scores.set_index(["scan", "reference"])["score"]
+    far = [v for (s, r), v in neighbour.items() if abs(int(s[1:]) - int(r[1:])) >= 4]
+    assert min(neighbour[list(truth)]) > max(far) and np.mean(neighbour[list(truth)]) > 3 * np.mean(far)
+
+
+def test_candidate_pairs_screened_linear_and_small_campaigns_whole():
+    stems = _strip(2, n=10)
+    ids = list(stems)
+    df = candidate_pairs(ids, reach={s: 12.0 for s in ids}, stems=stems, screen_keep=2)
+    assert (df.source == "no_prior").all() and len(df) <= 3 * len(ids) and len(df) < 45
+    assert "screen_score" in df and (df.screen_score >= 0).all()
+    got = set(zip(df.scan, df.reference, strict=True))
+    assert all((ids[k + 1], ids[k]) in got for k in range(len(ids) - 1))
+    whole = candidate_pairs(ids, reach={s: 12.0 for s in ids}, stems=stems, screen_keep=0)
+    assert len(whole) == 45
+    small = candidate_pairs(ids[:3], reach={s: 12.0 for s in ids}, stems=stems, screen_keep=2)
+    assert len(small) == 3
+
+
+def test_stems_from_cylinders_merges_segments_of_one_stem():
+    cyl = pd.DataFrame({
+        "x0": [1.0, 1.02, 5.0], "y0": [2.0, 2.0, 5.0], "z0": [-1.0, 0.5, -0.5],
+        "x1": [1.0, 1.04, 5.0], "y1": [2.0, 2.0, 5.0], "z1": [0.4, 2.0, 1.5],
+        "radius_m": [0.2, 0.18, 0.1],
+    })
+    stems = stems_from_cylinders(cyl)
+    assert stems.shape == (2, 3)
+    first = stems[np.argmin(stems[:, 0])]
+    assert abs(first[0] - 1.0) < 0.05 and 0.18 <= first[2] <= 0.2
+
+
+def test_unplaced_scans_are_retried_against_their_next_best_partners():
+    from forestmap_assets.core.registration.candidates import retry_candidates
+
+    stems = _strip(1)
+    ids = list(stems)
+    searched = [(ids[k + 1], ids[k]) for k in range(len(ids) - 1)]
+    cand = pd.DataFrame({"scan": [s for s, _ in searched], "reference": [r for _, r in searched]})
+    status = ["accepted"] * len(searched)
+    status[5] = "rejected"  # s6-s5 failed: s6 and s7 are unplaced
+    regs = cand.assign(status=status)
+    extra = retry_candidates(ids, cand, regs, stems, keep=1, reach={s: 14.0 for s in ids})
+    assert set(zip(extra.scan, extra.reference, strict=True)) == {("s6", "s4"), ("s7", "s5")}
+    assert (extra.hheading_deg == 180.0).all() and (extra.screen_score >= 5).all()
+    none = retry_candidates(ids, cand, cand.assign(status="accepted"), stems, keep=1)
+    assert len(none) == 0
