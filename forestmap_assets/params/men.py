@@ -56,6 +56,12 @@ class RefineSettings:
     min_overlap_kept: float = 0.9
     two_way_model_voxel_m: float = 0.04  # the model voxel of the two-way refinement
     max_data_points: int = 20000  # the data cloud of each scan is thinned to at most this many
+    # the two-way sigma (Hessian x sd_inflation, with half the two directions' disagreement) is
+    # scaled per axis (x, y, z, heading) and the heading floored: fitted on the final poses of
+    # 5 + 5 simulated half-resolution surveys with realistic and circular stems (benchmarks/
+    # results.md "sigmas"; error / sd RMS on realistic stems without: 1.16, 1.56, 1.12, 1.88)
+    two_way_sd_scale: tuple[float, float, float, float] = (1.5, 1.5, 1.3, 1.5)
+    two_way_sd_floor_deg: float = 0.02
     max_fit_loss: float = 0.005  # relative: the refined fit may be this much worse (noise)
 
 

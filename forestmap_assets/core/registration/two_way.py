@@ -23,7 +23,8 @@ own fit rather than because it stays within a box of the coarse sigma:
 
 The pose used is the mean of the two directions; its sigma combines the Gauss-Newton Hessian
 (inflated for correlated neighbours, times ``sd_inflation``) with half the disagreement of the two
-directions, then floors. Per-scan clouds (voxel-thinned data and model, model normals and k-d
+directions, scaled per axis by ``two_way_sd_scale`` (fitted on simulated surveys with realistic
+stems, where bark relief and one-sided views bias both directions alike), then floors. Per-scan clouds (voxel-thinned data and model, model normals and k-d
 tree) are prepared once and shared by all pairs of the scan (:class:`RefineCloud`).
 """
 
@@ -164,8 +165,8 @@ def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings)
     diff = np.r_[poses[0][:3] - poses[-1][:3], wrap_deg(poses[0][3] - poses[-1][3])]
     mean = np.r_[(poses[0][:3] + poses[-1][:3]) / 2, wrap_deg(poses[-1][3] + diff[3] / 2)]
     hess = s.sd_inflation * np.nanmax([w.sd for w in ways], axis=0)
-    sd = np.sqrt(np.nan_to_num(hess, nan=np.inf) ** 2 + (diff / 2) ** 2)
-    sd = np.maximum(sd, [s.sd_floor_m, s.sd_floor_m, s.sd_floor_z_m, s.sd_floor_deg])
+    sd = np.asarray(s.two_way_sd_scale) * np.sqrt(np.nan_to_num(hess, nan=np.inf) ** 2 + (diff / 2) ** 2)
+    sd = np.maximum(sd, [s.sd_floor_m, s.sd_floor_m, s.sd_floor_z_m, s.two_way_sd_floor_deg])
     fit_b = float(np.mean([w.fit_start for w in ways]))
     fit_r = float(np.mean([w.fit_end for w in ways]))
     pairs_b, pairs_r = sum(w.pairs_start for w in ways), sum(w.pairs_end for w in ways)
