@@ -10,6 +10,7 @@ import pytest
 from forestmap_assets.core.features.range_image import spherical_to_xyz
 from forestmap_assets.io.projection import (
     estimate_angular_step,
+    fill_ratio,
     nearest_per_pixel,
     project_to_range_image,
     spherical_angles,
@@ -125,9 +126,11 @@ def test_given_step_overrides_estimate():
     assert coarse.azimuth_step_deg == pytest.approx(2.0)
     assert coarse.elevation_step_deg == pytest.approx(2.0)
     assert coarse.valid.all()  # each 2 x 2 block of points fills one pixel
-    # nearest of the 2 x 2 block kept in each pixel (first return)
-    blocks = r.reshape(20, 2, 45, 2).min(axis=(1, 3))
-    np.testing.assert_allclose(coarse.range_m, blocks, rtol=1e-6)
+    # per pixel a point of its 2 x 2 block's front surface (first return: within 0.11 m of
+    # the nearest; of those the one nearest the pixel centre)
+    blocks = r.reshape(20, 2, 45, 2)
+    assert (coarse.range_m - blocks.min(axis=(1, 3)) <= 0.11 + 1e-5).all()
+    assert np.isclose(blocks, coarse.range_m[:, None, :, None], rtol=1e-6).any(axis=(1, 3)).all()
     fine = project_to_range_image(xyz, angular_step_deg=(0.5, 1.0))
     assert fine.shape == (40, 179)
     assert fine.valid.sum() == np.isfinite(r).sum()
@@ -208,6 +211,12 @@ def test_sparse_sampling_half_the_returns_missing():
     r, az, el = grid_image(130, 400, az_step, el_step, -60.0, 20.0, dropout=0.0)
     xyz, keep = jittered_cloud(r, az, el, az_step, el_step, sigma=0.1, dropout=0.5, seed=7)
     np.testing.assert_allclose(estimate_angular_step(xyz), (az_step, el_step), rtol=0.002)
-    img = project_to_range_image(xyz)
+    img = project_to_range_image(xyz, min_fill=0.0)  # the scanner's own grid, half empty
     assert img.shape == r.shape
     assert np.isnan(img.range_m[keep]).mean() < 0.05
+    assert fill_ratio(img.valid) < 0.55
+    # by default the step grows until the image is mostly filled (issue 18)
+    filled = project_to_range_image(xyz)
+    assert fill_ratio(filled.valid) >= 0.6
+    assert 1.1 < filled.azimuth_step_deg / az_step < 1.4
+    assert filled.elevation_step_deg / filled.azimuth_step_deg == pytest.approx(1.0, rel=0.01)
