@@ -372,7 +372,7 @@ def main() -> int:
         "(shared with other work), one fresh process per scan (the first circle models call "
         "loads the compiled numba kernels: compare the warm repeat), capped at "
         f"{args.mem_gb:g} GB; campaign defaults (params `range_images`: `min_step_deg` 0.05, "
-        "`min_fill` 0.6, gaps bridged). Per-scan stages: read + range image, segments, circle "
+        "`min_fill` 0.5, gaps bridged). Per-scan stages: read + range image, segments, circle "
         "models, cylinders (`assets.ingest.read_campaign_scan` and the core functions); the "
         "table round trip is what the asset store adds. Scans: see "
         "`benchmarks/bench_big_scan.py`."

@@ -27,7 +27,7 @@ from forestmap_assets.params.men import ExplorationConfig, OcclusionConfig
 
 # Bump a stage's number when its code changes meaning; the parameter hash is appended.
 CODE_VERSIONS: dict[str, str] = {
-    "range_images": "3",
+    "range_images": "4",
     "segments": "1",
     "circle_models": "2",
     "cylinder_segments": "2",

@@ -13,7 +13,11 @@ from pathlib import Path
 import numpy as np
 
 from forestmap_assets.core.features.range_image import RangeImage
-from forestmap_assets.io.projection import project_angles, project_to_range_image
+from forestmap_assets.io.projection import (
+    project_angles,
+    project_to_range_image,
+    spherical_angles,
+)
 from forestmap_assets.params import RangeImageParams
 
 _DEFAULTS = RangeImageParams()
@@ -155,13 +159,14 @@ def _bridged(image: RangeImage, n_points: int, settings: ProjectionSettings) -> 
     say so and more than ``_LOST_SHARE`` of the ``n_points`` projected found no pixel: not a
     scanner's own grid, whose misses are kept."""
     if settings.bridge and image.valid.sum() < (1.0 - _LOST_SHARE) * n_points:
-        bridge_row_gaps(image.range_m, image.intensity, image.rgb)
+        bridge_row_gaps(image.range_m, image.intensity, image.rgb, image.points)
     return image
 
 
-def bridge_row_gaps(range_img, intensity=None, rgb=None) -> None:
+def bridge_row_gaps(range_img, intensity=None, rgb=None, points=None) -> None:
     """Fill, in place, row gaps of 1 to ``_GAP_PX`` empty pixels between two returns less than
-    ``_GAP_RANGE_M`` apart: range and intensity interpolated linearly, colour of the nearer
+    ``_GAP_RANGE_M`` apart: range, intensity and the pixel's point (``RangeImage.points``, on
+    the chord between its neighbours' points) interpolated linearly, colour of the nearer
     side (inferred: the holes a projection leaves in a surface split its scan lines, and the
     segmentation, spec 2.2, breaks a run at every empty pixel)."""
     rows, cols = range_img.shape
@@ -176,7 +181,7 @@ def bridge_row_gaps(range_img, intensity=None, rgb=None) -> None:
         vv, uu = np.nonzero(ok)
         for k in range(g):
             w = np.float32((k + 1) / (g + 1))
-            for img in (range_img, intensity):
+            for img in (range_img, intensity, points):
                 if img is not None:
                     img[vv, uu + 1 + k] = (1 - w) * img[vv, uu] + w * img[vv, uu + g + 1]
             if rgb is not None:
@@ -193,8 +198,12 @@ def coarsen_range_image(image: RangeImage, min_step_deg: float) -> RangeImage:
     if min_step_deg <= 0 or (sa >= min_step_deg * tol and se >= min_step_deg * tol):
         return image
     v, u = np.nonzero(image.valid)
+    if image.points is not None:  # the pixels' own points (a projected cloud)
+        r, az, el = spherical_angles(image.points[v, u].astype(np.float64))
+    else:
+        r, az, el = image.range_m[v, u], image.azimuth_deg[u], image.elevation_deg[v]
     out = project_angles(
-        image.range_m[v, u], image.azimuth_deg[u], image.elevation_deg[v],
+        r, az, el,
         None if image.rgb is None else image.rgb[v, u],
         None if image.intensity is None else image.intensity[v, u],
         angular_step_deg=(max(sa, min_step_deg), max(se, min_step_deg)), min_fill=0.0,

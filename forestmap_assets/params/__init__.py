@@ -46,7 +46,7 @@ class RangeImageParams(_Stage):
     the scan-line segmentation breaks a run at every empty pixel (spec 2.2)."""
 
     min_step_deg: float = Field(0.05, ge=0.0)
-    min_fill: float = Field(0.6, ge=0.0, lt=1.0)
+    min_fill: float = Field(0.5, ge=0.0, lt=1.0)
     bridge_gaps: bool = True
 
 
