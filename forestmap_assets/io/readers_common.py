@@ -14,6 +14,7 @@ import numpy as np
 
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.projection import (
+    fill_ratio,
     project_angles,
     project_to_range_image,
     spherical_angles,
@@ -151,14 +152,17 @@ def _project_angles(range_m, azimuth_deg, elevation_deg, rgb, intensity,
 
 
 _LOST_SHARE = 0.01  # (inferred) share of points without a pixel above which gaps are bridged
+_GRID_FILL = 0.75  # (inferred) fill below which an image is not a scanner's whole grid either
 _GAP_PX, _GAP_RANGE_M = 2, 0.11  # (inferred) longest row gap bridged; range step (Table 4.1)
 
 
 def _bridged(image: RangeImage, n_points: int, settings: ProjectionSettings) -> RangeImage:
     """``image`` with its short row gaps bridged (:func:`bridge_row_gaps`) when ``settings``
-    say so and more than ``_LOST_SHARE`` of the ``n_points`` projected found no pixel: not a
-    scanner's own grid, whose misses are kept."""
-    if settings.bridge and image.valid.sum() < (1.0 - _LOST_SHARE) * n_points:
+    say so and more than ``_LOST_SHARE`` of the ``n_points`` projected found no pixel, or less
+    than ``_GRID_FILL`` of its scanned region holds a return (a thinned export at the scanner's
+    own step): not a scanner's whole grid, whose misses are kept."""
+    if settings.bridge and (image.valid.sum() < (1.0 - _LOST_SHARE) * n_points
+                            or fill_ratio(image.valid) < _GRID_FILL):
         bridge_row_gaps(image.range_m, image.intensity, image.rgb, image.points)
     return image
 

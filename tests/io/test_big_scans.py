@@ -14,7 +14,7 @@ from forestmap_assets.assets.common import code_version
 from forestmap_assets.assets.ingest import read_campaign_scan
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.campaign import load_campaign
-from forestmap_assets.io.projection import fill_ratio, project_to_range_image
+from forestmap_assets.io.projection import fill_ratio, neighbour_fill, project_to_range_image
 from forestmap_assets.io.readers import read_scan
 from forestmap_assets.io.readers_common import (
     ProjectionSettings,
@@ -67,6 +67,16 @@ def test_fill_ratio_counts_the_scanned_region_only():
     sparse = rng.random((400, 400)) < 0.07  # a step far too fine: 7 % hit at random
     assert fill_ratio(sparse) == pytest.approx(0.07 / (1 - 0.93 ** 9), rel=0.05)
     assert fill_ratio(np.zeros((3, 3), bool)) == 0.0
+
+
+def test_neighbour_fill_tells_holey_surfaces_from_dense_ones():
+    assert neighbour_fill(np.ones((10, 12), bool)) == 1.0
+    checker = (np.indices((40, 40)).sum(0) % 2) == 0  # every other pixel: diagonals only
+    assert neighbour_fill(checker) == pytest.approx(0.5, abs=0.02)
+    rng = np.random.default_rng(1)
+    holes = rng.random((300, 300)) < 0.5  # thinned at random: as holey around each return
+    assert neighbour_fill(holes) == pytest.approx(0.5, abs=0.02)
+    assert neighbour_fill(np.zeros((3, 3), bool)) == 0.0
 
 
 @pytest.mark.parametrize("case", ["cell", "cell_far_sparse", "jitter_dropout", "thinned"])
