@@ -48,7 +48,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--trees", type=int, default=40)
     s.add_argument("--plot-size", type=float, default=40.0)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--resolution", choices=["full", "half", "quarter"], default="full")
+    s.add_argument("--resolution", choices=["fine", "full", "half", "quarter"], default="full")
     s.add_argument("--prior-error", type=_pair, default=(1.0, 10.0), metavar="M,DEG")
     s.add_argument("--no-prior", action="store_true")
     s.add_argument("--format", choices=["npz", "las", "ply", "e57", "e57-multi"], default="npz",

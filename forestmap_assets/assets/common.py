@@ -27,7 +27,7 @@ from forestmap_assets.params.men import ExplorationConfig, OcclusionConfig
 
 # Bump a stage's number when its code changes meaning; the parameter hash is appended.
 CODE_VERSIONS: dict[str, str] = {
-    "range_images": "2",
+    "range_images": "4",
     "segments": "1",
     "circle_models": "2",
     "cylinder_segments": "2",
@@ -45,7 +45,7 @@ CODE_VERSIONS: dict[str, str] = {
 
 # Which parameter sections each stage reads (their hash enters the code version).
 STAGE_PARAMS: dict[str, tuple[str, ...]] = {
-    "range_images": (),
+    "range_images": ("range_images",),
     "segments": ("segmentation",),
     "circle_models": ("segmentation", "circles"),
     "cylinder_segments": ("cylinders",),

@@ -23,19 +23,28 @@ from forestmap_assets.assets.common import (
 )
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.io.projection import fill_ratio
 from forestmap_assets.outputs.figures.range_images import range_mask_figure
 
 
 def read_campaign_scan(campaign: Campaign, scan_id: str) -> RangeImage:
-    """Read one scan of the campaign as a levelled organised range image."""
+    """Read one scan of the campaign as a levelled organised range image, on the grid of params
+    section ``range_images``: an unorganised cloud projected at the sensor's step (campaign.yaml
+    ``sensor``) or one estimated to fill the image, an organised scan finer than
+    ``min_step_deg`` thinned to it (issue 18, big scans)."""
     from forestmap_assets.io.readers import read_scan
+    from forestmap_assets.io.readers_common import ProjectionSettings, coarsen_range_image
 
     try:
         entry = campaign.scan(scan_id)
     except KeyError:
         raise ValueError(f"scan {scan_id!r} is not listed in {campaign.root / 'campaign.yaml'}") from None
-    return read_scan(entry.path, angular_step_deg=campaign.angular_step_deg, tilt_deg=entry.tilt_deg,
-                     scan_index=entry.e57_scan, to_scanner=entry.to_scanner)
+    p = campaign.params.range_images
+    settings = ProjectionSettings(campaign.angular_step_deg, p.min_step_deg, p.min_fill,
+                                  p.bridge_gaps)
+    image = read_scan(entry.path, angular_step_deg=settings, tilt_deg=entry.tilt_deg,
+                      scan_index=entry.e57_scan, to_scanner=entry.to_scanner)
+    return coarsen_range_image(image, p.min_step_deg)
 
 
 def ingest_assets(campaign: Campaign) -> list:
@@ -83,6 +92,8 @@ def ingest_assets(campaign: Campaign) -> list:
             "cols": cols,
             "valid_pixels": valid,
             "valid_share": round(valid / max(rows * cols, 1), 4),
+            # share of the pixels inside the scanned region holding a return (io/projection.py)
+            "fill_ratio": round(fill_ratio(image.valid), 4),
             "azimuth_step_deg": round(image.azimuth_step_deg, 5),
             "elevation_step_deg": round(image.elevation_step_deg, 5),
             "max_range_m": float(np.max(finite)) if valid else 0.0,

@@ -1,6 +1,11 @@
 """Readers of unorganised point-cloud files (spec 1.2, DESIGN section 2): LAS/LAZ (laspy) and
 PLY/PCD (open3d), turned into a range image by spherical projection.
 
+LAS/LAZ is read in chunks of ``_CHUNK_POINTS`` (laspy, LAZ decompressed by lazrs on every core):
+each chunk's points go to float64 scanner-frame coordinates and straight to their range,
+azimuth and elevation, so a 30 M-point scan never holds its whole cloud as float64 xyz
+(issue 18, big scans).
+
 A damaged file is refused, not read in part (issue 18): the header's point count is compared
 with what the file holds (its size for binary data, its words for ASCII data) before the
 backend reads it, and with the points the backend returned after (Open3D stops at the damage
@@ -15,9 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.io.projection import spherical_angles
 from forestmap_assets.io.readers_common import (
     BadScan,
     _project,
+    _project_angles,
     check_signature,
     count_damage,
     count_words,
@@ -25,6 +32,7 @@ from forestmap_assets.io.readers_common import (
 )
 
 _LAS_DAMAGE = "corrupt or truncated LAS/LAZ data"
+_CHUNK_POINTS = 4_000_000  # (inferred) points per LAS/LAZ read: ~0.5 GB of working memory
 
 
 def _las_layout(path: Path) -> dict:
@@ -113,25 +121,66 @@ def read_las(path: Path, angular_step_deg, to_scanner=None) -> RangeImage:
     check_signature(path, (b"LASF",), "a LAS file")
     layout = _check_las_size(path)
     try:
-        las = laspy.read(str(path))
+        with laspy.open(str(path)) as reader:
+            header = reader.header
+            n = int(header.point_count)
+            dims = set(header.point_format.dimension_names)
+            points = _LasPoints(n, {"red", "green", "blue"} <= dims, "intensity" in dims)
+            for chunk in reader.chunk_iterator(_CHUNK_POINTS):
+                if points.held + len(chunk) > n:
+                    raise BadScan(f"{_LAS_DAMAGE} ({count_damage(n, points.held + len(chunk))})")
+                points.add(chunk, to_scanner)
+    except BadScan:
+        raise
     except Exception as exc:  # laspy's errors on damaged files are cryptic: say what happened
         first = (str(exc).splitlines() or [""])[0]
         said = f"header says {layout['count']} points; " if layout["count"] else ""
         raise BadScan(f"{_LAS_DAMAGE} ({said}{type(exc).__name__}: {first})") from exc
-    n = int(las.header.point_count)
-    if len(las.points) != n:
-        raise BadScan(f"{_LAS_DAMAGE} ({count_damage(n, len(las.points))})")
+    if points.held != n:
+        raise BadScan(f"{_LAS_DAMAGE} ({count_damage(n, points.held)})")
     if layout["compressed"]:
-        _check_laz_chunks(path, las.header, n)
-    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
-    dims = set(las.point_format.dimension_names)
-    rgb = None
-    if {"red", "green", "blue"} <= dims:
-        raw = np.column_stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)])
-        # 16-bit colour per the LAS spec; files holding 8-bit values (max <= 255) are kept as is
-        rgb = to_rgb8(raw, full_scale=65535.0 if raw.size and raw.max() > 255 else 255.0)
-    intensity = np.asarray(las.intensity, dtype=np.float32) if "intensity" in dims else None
-    return _project(xyz, rgb, intensity, angular_step_deg, to_scanner)
+        _check_laz_chunks(path, header, n)
+    return _project_angles(points.range_m, points.azimuth_deg, points.elevation_deg,
+                           points.rgb8(), points.intensity, angular_step_deg)
+
+
+class _LasPoints:
+    """A LAS/LAZ file's points gathered chunk by chunk as range (float32: what the range image
+    keeps), azimuth and elevation (float64) in the scanner frame, raw colour and intensity."""
+
+    def __init__(self, n: int, has_rgb: bool, has_intensity: bool) -> None:
+        self.held = 0
+        self.range_m = np.empty(n, dtype=np.float32)
+        self.azimuth_deg = np.empty(n, dtype=np.float64)
+        self.elevation_deg = np.empty(n, dtype=np.float64)
+        self.rgb = np.empty((n, 3), dtype=np.uint16) if has_rgb else None
+        self.intensity = np.empty(n, dtype=np.float32) if has_intensity else None
+
+    def add(self, chunk, to_scanner) -> None:
+        a, b = self.held, self.held + len(chunk)
+        xyz = (np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z))
+        if to_scanner is not None:  # project-frame file: to the scanner's frame in float64
+            m = np.asarray(to_scanner, dtype=np.float64)
+            xyz = tuple(xyz[0] * m[i, 0] + xyz[1] * m[i, 1] + xyz[2] * m[i, 2] + m[i, 3]
+                        for i in range(3))
+        self.range_m[a:b], self.azimuth_deg[a:b], self.elevation_deg[a:b] = spherical_angles(*xyz)
+        if self.rgb is not None:
+            for i, name in enumerate(("red", "green", "blue")):
+                self.rgb[a:b, i] = np.asarray(chunk[name])
+        if self.intensity is not None:
+            self.intensity[a:b] = np.asarray(chunk["intensity"])
+        self.held = b
+
+    def rgb8(self) -> np.ndarray | None:
+        """Colour as uint8: 16-bit per the LAS spec; files holding 8-bit values (max <= 255)
+        are kept as they are."""
+        if self.rgb is None:
+            return None
+        full = 65535.0 if self.rgb.size and self.rgb.max() > 255 else 255.0
+        out = np.empty(self.rgb.shape, dtype=np.uint8)
+        for a in range(0, len(out), _CHUNK_POINTS):
+            out[a:a + _CHUNK_POINTS] = to_rgb8(self.rgb[a:a + _CHUNK_POINTS], full_scale=full)
+        return out
 
 
 _PLY_SIZES = {

@@ -52,6 +52,8 @@ def atomic_write(path: str | Path) -> Iterator[Path]:
 def scan_points(image: RangeImage) -> tuple[np.ndarray, np.ndarray]:
     """Scanner-frame points (n, 3) of the pixels with a return, and their (row, col) (n, 2)."""
     v, u = np.nonzero(image.valid)
+    if image.points is not None:  # a projected cloud's own points
+        return image.points[v, u].astype(np.float64), np.column_stack([v, u])
     xyz = spherical_to_xyz(image.range_m, image.azimuth_deg, image.elevation_deg)[v, u]
     return xyz, np.column_stack([v, u])
 

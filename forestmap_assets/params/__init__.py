@@ -14,7 +14,7 @@ import hashlib
 import json
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 Environment = Literal["forest", "outdoor", "indoor"]
 
@@ -26,6 +26,28 @@ class _Stage(BaseModel):
         """Short stable hash of this section's values (for Dagster code versions)."""
         text = json.dumps(self.model_dump(mode="json"), sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+class RangeImageParams(_Stage):
+    """The range image the per-scan stages get from a scan file (spec 1.2; inferred, issue 18).
+
+    ``min_step_deg``: the finest angular step of that image, per axis. A finer scan (a modern
+    scanner's 0.02-0.04 deg, 20-50 M points) is projected onto this grid, per pixel the return
+    of the front surface (first return, spec 1.1) nearest its centre; organised scans finer
+    than this are thinned the same way. 0.05 deg: 4.7x the points per square degree of the
+    Riegl LMS-Z210 (0.108 deg, spec 1.1), 5+ pixels across a 10 cm stem at 20 m (segment
+    minimum: 4, Table 4.1), the lowest radius error of 0.05-0.1 deg on simulated fine scans
+    (benchmarks/results.md, big scans). ``min_fill``: an angular step estimated from an
+    unorganised cloud is coarsened until at least this share of the pixels inside the scanned
+    region hold a return (io/projection.py); an explicit ``sensor: {angular_step_deg}`` in
+    campaign.yaml is used as given (``min_step_deg`` still applies). ``bridge_gaps``: in a
+    projected image that is not the scanner's own grid, row gaps of 1-2 empty pixels between
+    returns less than 0.11 m apart (Table 4.1's range step) are filled by interpolation, as
+    the scan-line segmentation breaks a run at every empty pixel (spec 2.2)."""
+
+    min_step_deg: float = Field(0.05, ge=0.0)
+    min_fill: float = Field(0.5, ge=0.0, lt=1.0)
+    bridge_gaps: bool = True
 
 
 class SegmentationParams(_Stage):
@@ -276,6 +298,7 @@ class Params(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+    range_images: RangeImageParams = RangeImageParams()
     segmentation: SegmentationParams = SegmentationParams()
     circles: CircleParams = CircleParams()
     cylinders: CylinderParams = CylinderParams()

@@ -3,7 +3,10 @@
 Image geometry (spec 1.2): ``rows x cols`` = 720 x 3000 at full resolution over 79 deg x
 330 deg (JP §II-A), elevation symmetric about the horizon, row 0 at the top, azimuth
 increasing with the column; "half"/"quarter" divide both counts by 2/4 over the same field of
-view. Range noise is Gaussian with sigma 0.025 m (Table 6.1).
+view. "fine" is a modern scanner's grid instead (inferred, issue 18 "big scans"):
+``FINE_GRID``, 0.028 deg over 360 x 100 deg (12857 x 3571 pixels, about 30 M returns in the
+simulated forest; Riegl VZ-400i / FARO Focus class steps are 0.02-0.04 deg), with the same
+beam. Range noise is Gaussian with sigma 0.025 m (Table 6.1).
 
 First-return beam (spec 1.1 "Consequences"): the beam leaves the housing 0.042 m wide and
 diverges by 3 mrad, i.e. its footprint diameter at range r is ``0.042 + 0.003 r``. A pixel whose
@@ -33,7 +36,10 @@ from forestmap_assets.sim.scene_mesh import (
     NO_RETURN,
 )
 
-RESOLUTION_DIVISOR = {"full": 1, "half": 2, "quarter": 4}
+# Riegl LMS-Z210 pixel counts divided by these; "fine" (None) has its own grid, FINE_GRID
+RESOLUTION_DIVISOR: dict[str, int | None] = {"fine": None, "full": 1, "half": 2, "quarter": 4}
+# (inferred) a modern scanner's step and field of view: about 30 M returns per forest scan
+FINE_GRID = {"step_deg": 0.028, "hfov_deg": 360.0, "vfov_deg": 100.0}
 
 # Relative reflectance per kind for the (inferred) intensity channel.
 _REFLECTANCE = np.zeros(256, dtype=np.float32)
@@ -106,7 +112,8 @@ class VirtualScanner:
     ``footprint_fraction`` (share of the nominal footprint radius at which a first return still
     triggers), ``mix_min_step_m`` (how much nearer a sub-ray return must be to replace the
     centre return) and the ``intensity`` channel (reflectance per kind x |cos incidence|; the
-    thesis uses range only). ``n_cols``/``n_rows`` are full-resolution counts. ``colour`` (True,
+    thesis uses range only). ``n_cols``/``n_rows`` are full-resolution counts (``resolution="fine"``
+    replaces them and the field of view by ``FINE_GRID``). ``colour`` (True,
     or a :class:`~forestmap_assets.sim.colour.ColourModel`) adds 8-bit RGB per pixel from the
     surface's world-fixed albedo under the scan's own light (men spec 2.3; ``sim/colour.py``).
     """
@@ -137,6 +144,11 @@ class VirtualScanner:
             raise ValueError(f"resolution: {resolution!r} is not one of {list(RESOLUTION_DIVISOR)}")
         self.mesh = getattr(target, "mesh", target)
         div = RESOLUTION_DIVISOR[resolution]
+        if div is None:  # a modern scanner's grid: its own step over its own field of view
+            hfov_deg, vfov_deg = FINE_GRID["hfov_deg"], FINE_GRID["vfov_deg"]
+            n_cols = int(round(hfov_deg / FINE_GRID["step_deg"]))
+            n_rows = int(round(vfov_deg / FINE_GRID["step_deg"]))
+            div = 1
         self.n_cols, self.n_rows = n_cols // div, n_rows // div
         self.d_az = hfov_deg / self.n_cols
         self.d_el = vfov_deg / self.n_rows
@@ -153,7 +165,7 @@ class VirtualScanner:
         self.intensity = intensity
         self.chunk_rays = chunk_rays
         self.mix_min_step_m = mix_min_step_m
-        self._dirs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._dirs: np.ndarray | None = None
         if colour is True:
             from forestmap_assets.sim.colour import ColourModel
 
@@ -165,18 +177,48 @@ class VirtualScanner:
         """Beam footprint radius at range r: (0.042 + 0.003 r) / 2 (spec 1.1)."""
         return self.exit_radius_m + self.half_angle_rad * np.asarray(r)
 
-    def _directions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Unit beam directions and the two footprint axes, scanner frame, (rows*cols, 3)."""
-        if self._dirs is None:
-            az = np.radians(self.azimuth_deg)[None, :]
-            el = np.radians(self.elevation_deg)[:, None]
-            ca, sa, ce, se = np.cos(az), np.sin(az), np.cos(el), np.sin(el)
-            one = np.ones((self.n_rows, self.n_cols))
-            d = np.stack([ce * ca * one, ce * sa * one, se * one], axis=-1)
-            e1 = np.stack([-sa * one, ca * one, 0 * one], axis=-1)
-            e2 = np.stack([-se * ca * one, -se * sa * one, ce * one], axis=-1)
-            self._dirs = tuple(v.reshape(-1, 3).astype(np.float32) for v in (d, e1, e2))
+    def _directions(self, jitter=None) -> np.ndarray:
+        """Unit beam directions, scanner frame, (rows*cols, 3) float32, built in row blocks so
+        that a fine grid needs no float64 copy of the whole image; cached without ``jitter``
+        (per-beam (d_az, d_el) in degrees, each (rows, cols))."""
+        if jitter is None and self._dirs is not None:
+            return self._dirs
+        d = np.empty((self.n_rows, self.n_cols, 3), dtype=np.float32)
+        block = max(1, 2_000_000 // self.n_cols)
+        for a in range(0, self.n_rows, block):
+            az, el = self._angles(slice(a, a + block), jitter)
+            ce = np.cos(el)
+            d[a:a + block, :, 0] = ce * np.cos(az)
+            d[a:a + block, :, 1] = ce * np.sin(az)
+            d[a:a + block, :, 2] = np.sin(el) * np.ones_like(az)
+        if jitter is not None:
+            return d.reshape(-1, 3)
+        self._dirs = d.reshape(-1, 3)
         return self._dirs
+
+    def _angles(self, rows, jitter=None, cols=slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """Beam azimuth and elevation (radians) of ``rows`` x ``cols`` (broadcastable), with
+        the per-beam ``jitter`` (degrees) added; or of flat pixels (``rows`` an index array)."""
+        if isinstance(rows, np.ndarray):  # flat pixel indices
+            v, u = np.divmod(rows, self.n_cols)
+            az, el = self.azimuth_deg[u], self.elevation_deg[v]
+            if jitter is not None:
+                az, el = az + jitter[0].reshape(-1)[rows], el + jitter[1].reshape(-1)[rows]
+            return np.radians(az), np.radians(el)
+        az = self.azimuth_deg[None, cols]
+        el = self.elevation_deg[rows][:, None]
+        if jitter is not None:
+            az, el = az + jitter[0][rows, cols], el + jitter[1][rows, cols]
+        return np.radians(az), np.radians(el)
+
+    def _footprint_axes(self, pixels: np.ndarray, jitter=None) -> tuple[np.ndarray, np.ndarray]:
+        """The two unit axes across the beam of flat ``pixels`` (scanner frame, float32):
+        ``e1`` horizontal, ``e2`` towards increasing elevation."""
+        az, el = self._angles(pixels, jitter)
+        ca, sa, ce, se = np.cos(az), np.sin(az), np.cos(el), np.sin(el)
+        e1 = np.stack([-sa, ca, np.zeros_like(ca)], axis=-1).astype(np.float32)
+        e2 = np.stack([-se * ca, -se * sa, ce], axis=-1).astype(np.float32)
+        return e1, e2
 
     def _cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Hit distance (inf: none or beyond max range) and triangle id (-1) of rays."""
@@ -227,13 +269,45 @@ class VirtualScanner:
             cand |= nearest < finite - self.mix_min_step_m
         return cand
 
+    def _beam_edge(self, cand, d, rot, origin, best_r, best_prim, mixed, rng, jitter=None) -> int:
+        """Sub-rays on the footprint's edge circle of the pixels ``cand``: where one returns
+        nearer than the centre ray by more than ``mix_min_step_m`` it becomes the pixel's return
+        (``best_r``, ``best_prim`` and ``mixed`` updated in place). Returns the rays cast."""
+        k, a, b = self.sub_rays, self.exit_radius_m, self.half_angle_rad
+        e1_s, e2_s = self._footprint_axes(cand, jitter)
+        phi = (np.arange(k, dtype=np.float32)[None, :]
+               + rng.random((cand.size, 1), dtype=np.float32)) * np.float32(2 * np.pi / k)
+        off = (np.cos(phi)[..., None] * (e1_s @ rot.T)[:, None, :]
+               + np.sin(phi)[..., None] * (e2_s @ rot.T)[:, None, :]).reshape(-1, 3)
+        # sub-ray k: from the exit circle (radius a) at half-angle b to the beam axis; its
+        # direction d + b*off has norm sqrt(1 + b^2) because off is perpendicular to d
+        sub_o = (origin + a * off).astype(np.float32)
+        sub_d = (np.repeat(d[cand], k, axis=0) + np.float32(b) * off) / np.float32(
+            np.sqrt(1 + b * b))
+        st, sp = self._cast(sub_o, sub_d)
+        # distance from the sensor origin to the hit: |a off + t d_k|
+        sr = np.sqrt(a * a + st * st + 2 * a * st * (b / np.sqrt(1 + b * b)))
+        sr, sp = sr.reshape(-1, k), sp.reshape(-1, k)
+        j = np.argmin(sr, axis=1)
+        sub_best = sr[np.arange(cand.size), j]
+        closer = sub_best < best_r[cand] - self.mix_min_step_m
+        sel = cand[closer]
+        best_r[sel] = sub_best[closer]
+        best_prim[sel] = sp[np.flatnonzero(closer), j[closer]]
+        mixed[sel] = True
+        return int(st.size)
+
     # ---- scanning ------------------------------------------------------------------------
-    def scan(self, pose: ScanPose, seed: int | np.random.Generator = 0) -> ScanResult:
-        """Simulate one range image from ``pose`` (noise and sub-ray pattern from ``seed``)."""
+    def scan(self, pose: ScanPose, seed: int | np.random.Generator = 0, *,
+             jitter: tuple[np.ndarray, np.ndarray] | None = None) -> ScanResult:
+        """Simulate one range image from ``pose`` (noise and sub-ray pattern from ``seed``).
+
+        ``jitter``: per-beam (d_az, d_el) in degrees, (rows, cols) each, turning every beam off
+        its grid direction (:meth:`scan_points`); the image then holds the ranges of the turned
+        beams at their grid pixels."""
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         rot = pose.rotation().astype(np.float32)
-        d_s, e1_s, e2_s = self._directions()
-        d = d_s @ rot.T
+        d = self._directions(jitter) @ rot.T
         origin = pose.origin
         t, prim = self._cast(origin[None], d)
         shape = (self.n_rows, self.n_cols)
@@ -243,28 +317,12 @@ class VirtualScanner:
         mixed = np.zeros(t.size, dtype=bool)
         if self.sub_rays > 0:
             cand = np.flatnonzero(self._mixed_candidates(t.reshape(shape), part_of.reshape(shape)))
-            k, a, b = self.sub_rays, self.exit_radius_m, self.half_angle_rad
-            phi = (np.arange(k, dtype=np.float32)[None, :]
-                   + rng.random((cand.size, 1), dtype=np.float32)) * np.float32(2 * np.pi / k)
-            off = (np.cos(phi)[..., None] * (e1_s[cand] @ rot.T)[:, None, :]
-                   + np.sin(phi)[..., None] * (e2_s[cand] @ rot.T)[:, None, :]).reshape(-1, 3)
-            # sub-ray k: from the exit circle (radius a) at half-angle b to the beam axis; its
-            # direction d + b*off has norm sqrt(1 + b^2) because off is perpendicular to d
-            sub_o = (origin + a * off).astype(np.float32)
-            sub_d = (np.repeat(d[cand], k, axis=0) + np.float32(b) * off) / np.float32(
-                np.sqrt(1 + b * b))
-            st, sp = self._cast(sub_o, sub_d)
-            n_rays += st.size
-            # distance from the sensor origin to the hit: |a off + t d_k|
-            sr = np.sqrt(a * a + st * st + 2 * a * st * (b / np.sqrt(1 + b * b)))
-            sr, sp = sr.reshape(-1, k), sp.reshape(-1, k)
-            j = np.argmin(sr, axis=1)
-            sub_best = sr[np.arange(cand.size), j]
-            closer = sub_best < best_r[cand] - self.mix_min_step_m
-            sel = cand[closer]
-            best_r[sel] = sub_best[closer]
-            best_prim[sel] = sp[np.flatnonzero(closer), j[closer]]
-            mixed[sel] = True
+            del part_of
+            # candidates in blocks (a fine grid has millions); the same random stream as one block
+            step = max(1, self.chunk_rays // self.sub_rays)
+            for c0 in range(0, cand.size, step):
+                n_rays += self._beam_edge(cand[c0:c0 + step], d, rot, origin, best_r, best_prim,
+                                          mixed, rng, jitter)
         valid = np.isfinite(best_r)
         true_r = np.where(valid, best_r, np.float32(np.nan))
         noise = rng.standard_normal(true_r.size, dtype=np.float32) * np.float32(self.range_sigma_m)
@@ -292,3 +350,25 @@ class VirtualScanner:
         return ScanResult(image, pose, true_r.reshape(shape), kind.reshape(shape),
                           tree.reshape(shape), part.reshape(shape), mixed.reshape(shape),
                           int(n_rays))
+
+    def scan_points(self, pose: ScanPose, seed: int | np.random.Generator = 0, *,
+                    jitter_steps: float = 0.3, dropout: float = 0.0
+                    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """An unorganised scan as a scanner exports it (inferred, issue 18): each beam leaves
+        along its grid direction turned by N(0, ``jitter_steps`` x step) in azimuth and in
+        elevation (a real scanner's points do not sit on an exact grid), with the same wide
+        first-return beam and range noise as :meth:`scan`, and a share ``dropout`` of the
+        returns is lost at random. Returns the scanner-frame points (n, 3) float64 and their
+        intensity (None without ``intensity``)."""
+        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        shape = (self.n_rows, self.n_cols)
+        jitter = (rng.normal(0.0, jitter_steps * self.d_az, shape).astype(np.float32),
+                  rng.normal(0.0, jitter_steps * self.d_el, shape).astype(np.float32))
+        image = self.scan(pose, rng, jitter=jitter).image
+        keep = np.flatnonzero((image.valid & (rng.random(shape) >= dropout)).ravel())
+        az, el = self._angles(keep, jitter)
+        r = image.range_m.reshape(-1)[keep].astype(np.float64)
+        xyz = np.column_stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az),
+                               r * np.sin(el)])
+        inten = None if image.intensity is None else image.intensity.reshape(-1)[keep]
+        return xyz, inten

@@ -6,11 +6,14 @@ import time
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from forestmap_assets.core.features.range_image import spherical_to_xyz
 from forestmap_assets.io.projection import (
     estimate_angular_step,
+    fill_ratio,
     nearest_per_pixel,
+    neighbour_fill,
     project_to_range_image,
     spherical_angles,
 )
@@ -125,9 +128,11 @@ def test_given_step_overrides_estimate():
     assert coarse.azimuth_step_deg == pytest.approx(2.0)
     assert coarse.elevation_step_deg == pytest.approx(2.0)
     assert coarse.valid.all()  # each 2 x 2 block of points fills one pixel
-    # nearest of the 2 x 2 block kept in each pixel (first return)
-    blocks = r.reshape(20, 2, 45, 2).min(axis=(1, 3))
-    np.testing.assert_allclose(coarse.range_m, blocks, rtol=1e-6)
+    # per pixel a point of its 2 x 2 block's front surface (first return: within 0.11 m of
+    # the nearest; of those the one nearest the pixel centre)
+    blocks = r.reshape(20, 2, 45, 2)
+    assert (coarse.range_m - blocks.min(axis=(1, 3)) <= 0.11 + 1e-5).all()
+    assert np.isclose(blocks, coarse.range_m[:, None, :, None], rtol=1e-6).any(axis=(1, 3)).all()
     fine = project_to_range_image(xyz, angular_step_deg=(0.5, 1.0))
     assert fine.shape == (40, 179)
     assert fine.valid.sum() == np.isfinite(r).sum()
@@ -208,6 +213,55 @@ def test_sparse_sampling_half_the_returns_missing():
     r, az, el = grid_image(130, 400, az_step, el_step, -60.0, 20.0, dropout=0.0)
     xyz, keep = jittered_cloud(r, az, el, az_step, el_step, sigma=0.1, dropout=0.5, seed=7)
     np.testing.assert_allclose(estimate_angular_step(xyz), (az_step, el_step), rtol=0.002)
-    img = project_to_range_image(xyz)
+    img = project_to_range_image(xyz, min_fill=0.0)  # the scanner's own grid, half empty
     assert img.shape == r.shape
     assert np.isnan(img.range_m[keep]).mean() < 0.05
+    assert fill_ratio(img.valid) < 0.55
+    # by default the step grows until the region and the returns' neighbourhoods are mostly
+    # filled (half the returns missing leaves every surface holey); more with a higher min_fill
+    grown = project_to_range_image(xyz)
+    assert fill_ratio(grown.valid) >= 0.5 and neighbour_fill(grown.valid) >= 0.7
+    assert 1.05 < grown.azimuth_step_deg / az_step < 1.5
+    filled = project_to_range_image(xyz, min_fill=0.7)
+    assert fill_ratio(filled.valid) >= 0.7
+    assert 1.05 < filled.azimuth_step_deg / az_step < 1.5
+    assert filled.elevation_step_deg / filled.azimuth_step_deg == pytest.approx(1.0, rel=0.01)
+
+
+def test_pixels_keep_their_points_own_xyz():
+    # points off any grid (a sampled scene): every pixel keeps one input point exactly, never
+    # one re-synthesised at the pixel's centre (issue 18), also through the stored table
+    from dataclasses import replace
+
+    from forestmap_assets.core.features.range_image import RangeImage
+
+    rng = np.random.default_rng(3)
+    n = 40_000
+    a, e = np.radians(rng.uniform(-40, 40, n)), np.radians(rng.uniform(-20, 20, n))
+    r = rng.uniform(2.0, 30.0, n)
+    xyz = np.column_stack([r * np.cos(e) * np.cos(a), r * np.cos(e) * np.sin(a), r * np.sin(e)])
+    img = project_to_range_image(xyz)
+    assert img.points is not None and fill_ratio(img.valid) >= 0.5
+    kept = img.xyz[img.valid]
+    d, _ = cKDTree(xyz).query(kept)
+    assert d.max() < 1e-5
+    np.testing.assert_allclose(np.linalg.norm(kept, axis=1), img.range_m[img.valid], rtol=1e-6)
+    tilted = replace(img, tilt_deg=(1.5, -2.0), _xyz=None)
+    back = RangeImage.from_table(tilted.to_table())
+    np.testing.assert_allclose(back.points[img.valid], img.points[img.valid], atol=2e-5)
+    np.testing.assert_allclose(back.xyz[img.valid], tilted.xyz[img.valid], atol=2e-5)
+
+
+def test_coarse_step_does_not_widen_a_stem():
+    # a 20 cm stem 8 m away sampled at random on its visible half, projected at 0.3 deg (4 cm
+    # pixels): its points stay on the stem (pixel-centre angles would put the silhouette's
+    # edge pixels up to 2 cm outside it and move the circle centre away from the scanner)
+    rng = np.random.default_rng(5)
+    n, radius, centre = 30_000, 0.1, np.array([8.0, 0.0])
+    theta = np.pi + rng.uniform(-np.pi / 2, np.pi / 2, n)
+    xyz = np.column_stack([centre[0] + radius * np.cos(theta), radius * np.sin(theta),
+                           rng.uniform(-1.0, 1.0, n)])
+    img = project_to_range_image(xyz, angular_step_deg=0.3)
+    pts = img.xyz[img.valid]
+    off_axis = np.hypot(pts[:, 0] - centre[0], pts[:, 1] - centre[1])
+    np.testing.assert_allclose(off_axis, radius, atol=1e-5)

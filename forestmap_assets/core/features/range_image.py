@@ -3,7 +3,11 @@
 A range image has ``rows x cols`` pixels; row ``v`` is a horizontal scan line at elevation
 ``elevation_deg[v]`` (row 0 at the top, elevations decreasing), column ``u`` is at azimuth
 ``azimuth_deg[u]`` (increasing). Sensor-frame point of a pixel:
-``x = r cos(el) cos(az), y = r cos(el) sin(az), z = r sin(el)``.
+``x = r cos(el) cos(az), y = r cos(el) sin(az), z = r sin(el)``; an image projected from an
+unorganised cloud (io/projection.py) carries instead each pixel's own point (``points``): its
+direction lies anywhere within (or, moved, next to) the pixel, and a point re-synthesised at the
+pixel's centre would be up to half a pixel off (a stem then widens by a pixel and its circle
+centre moves away from the scanner, issue 18).
 
 Levelling: the scanner reports its measured ``roll`` (about x) and ``pitch`` (about y). A point
 in the scanner's own frame ``p_s`` is rotated into the horizontally levelled sub-map frame by
@@ -42,7 +46,9 @@ class RangeImage:
 
     ``range_m`` (rows, cols) float32 with NaN for no return; ``azimuth_deg`` (cols,),
     ``elevation_deg`` (rows,); optional ``intensity`` (rows, cols) float32 and ``rgb``
-    (rows, cols, 3) uint8. ``xyz`` gives the levelled points.
+    (rows, cols, 3) uint8; optional ``points`` (rows, cols, 3) float32: the scanner-frame
+    point of each pixel's return (NaN where none; ``range_m`` is its distance) when the pixel's
+    centre is not that point's direction. ``xyz`` gives the levelled points.
     """
 
     range_m: np.ndarray
@@ -51,6 +57,7 @@ class RangeImage:
     tilt_deg: tuple[float, float] = (0.0, 0.0)
     intensity: np.ndarray | None = None
     rgb: np.ndarray | None = None
+    points: np.ndarray | None = field(default=None, repr=False)
     _xyz: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -75,6 +82,10 @@ class RangeImage:
             self.intensity = np.asarray(self.intensity, dtype=np.float32)
             if self.intensity.shape != (rows, cols):
                 raise ValueError(f"intensity: expected shape {(rows, cols)}, got {self.intensity.shape}")
+        if self.points is not None:
+            self.points = np.asarray(self.points, dtype=np.float32)
+            if self.points.shape != (rows, cols, 3):
+                raise ValueError(f"points: expected shape {(rows, cols, 3)}, got {self.points.shape}")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -97,7 +108,11 @@ class RangeImage:
     def xyz(self) -> np.ndarray:
         """Levelled points (rows, cols, 3) float64, NaN where no return (cached)."""
         if self._xyz is None:
-            pts = spherical_to_xyz(self.range_m, self.azimuth_deg, self.elevation_deg)
+            if self.points is not None:
+                pts = self.points.astype(np.float64)
+                pts[~self.valid] = np.nan
+            else:
+                pts = spherical_to_xyz(self.range_m, self.azimuth_deg, self.elevation_deg)
             if any(self.tilt_deg):
                 pts = pts @ levelling_rotation(*self.tilt_deg).T
             self._xyz = pts
@@ -132,6 +147,7 @@ class RangeImage:
             "tilt_deg": json.dumps(list(map(float, self.tilt_deg))),
             "has_rgb": json.dumps(self.rgb is not None),
             "has_intensity": json.dumps(self.intensity is not None),
+            "has_points": json.dumps(self.points is not None),
         }
         return pa.table(cols).replace_schema_metadata({k: str(v) for k, v in meta.items()})
 
@@ -154,4 +170,11 @@ class RangeImage:
             rgb = np.zeros(shape + (3,), dtype=np.uint8)
             for i, name in enumerate("rgb"):
                 rgb[v, u, i] = table.column(name).to_numpy()
-        return cls(rng, az, el, (float(tilt[0]), float(tilt[1])), intensity, rgb)
+        points = None
+        if json.loads(meta.get("has_points", "false")):  # back to the scanner frame
+            lev = np.column_stack([table.column(c).to_numpy().astype(np.float64) for c in "xyz"])
+            if any(tilt):
+                lev = lev @ levelling_rotation(*tilt)
+            points = np.full(shape + (3,), np.nan, dtype=np.float32)
+            points[v, u] = lev
+        return cls(rng, az, el, (float(tilt[0]), float(tilt[1])), intensity, rgb, points)

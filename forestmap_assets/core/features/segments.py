@@ -295,6 +295,9 @@ def pixel_xyz(image: RangeImage, row: np.ndarray, col: np.ndarray) -> np.ndarray
     """Levelled xyz (n, 3) of the given pixels, without building the whole point image."""
     if image._xyz is not None:
         return image._xyz[row, col]
+    if image.points is not None:  # each pixel's own point (io/projection.py)
+        pts = image.points[row, col].astype(np.float64)
+        return pts @ levelling_rotation(*image.tilt_deg).T if any(image.tilt_deg) else pts
     r = image.range_m[row, col].astype(np.float64)
     az = np.radians(image.azimuth_deg[col])
     el = np.radians(image.elevation_deg[row])
