@@ -93,6 +93,7 @@ def registration_assets(campaign: Campaign) -> list:
             a_priori=a_priori, search=(reg.xy_m, reg.z_m, reg.heading_deg), reach=reach,
             k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
             stems=stems, screen_keep=reg.screen_keep if screen else 0,
+            screen_centre_min=reg.screen_centre_min if screen else 0, screen_box=tuple(reg.screen_box),
             progress=lambda m: (context.log.info(m), report(m)),
         )
         if fourier and len(table) and (table["source"] == "no_prior").any():
@@ -139,6 +140,28 @@ def registration_assets(campaign: Campaign) -> list:
                                        feature_z_sd_m=reg.feature_z_sd_m, progress=progress)
 
         bundle = register(candidate_pairs)
+        regs = bundle["registrations"]
+        # issue 17: a pair centred on its screening motion that failed is searched again in the
+        # no-prior box (the motion may have been wrong)
+        failed = set(zip(regs.loc[regs["status"] != "accepted", "scan"], regs.loc[regs["status"] != "accepted", "reference"],
+                         strict=True))
+        again_mask = np.array([(a, b) in failed for a, b in zip(candidate_pairs["scan"], candidate_pairs["reference"],
+                                                                   strict=True)], dtype=bool)
+        screened = candidate_pairs[(candidate_pairs["source"] == "screened").to_numpy() & again_mask] \
+            if len(candidate_pairs) else candidate_pairs
+        widened_pairs = 0
+        if len(screened):
+            from forestmap_assets.core.registration.candidates import widened
+
+            again = widened(screened, reach={sid: submap_reach(df) for sid, df in (submaps or {}).items()},
+                            z_m=reg.z_m, max_xy_m=reg.max_xy_m, xy_m=reg.xy_m)
+            progress(f"searching {len(again)} screened pairs again in the no-prior box")
+            more = register(again)
+            drop = set(zip(again["scan"], again["reference"], strict=True))
+            bundle = {k: pd.concat([v[np.array([(a, b) not in drop for a, b in zip(v["scan"], v["reference"], strict=True)],
+                                               dtype=bool)] if len(v) else v, more[k]], ignore_index=True)
+                      for k, v in bundle.items()}
+            widened_pairs = len(again)
         retried = 0
         if screen and len(submaps or {}) > reg.screen_keep + 1:  # issue 17: retry unplaced scans
             from forestmap_assets.core.registration.candidates import retry_candidates
@@ -160,6 +183,7 @@ def registration_assets(campaign: Campaign) -> list:
         meta = {
             "pairs": len(regs),
             "retried": retried,
+            "searched_again_unscreened": widened_pairs,
             "accepted": int(counts.get("accepted", 0)),
             "rejected": int(counts.get("rejected", 0)),
             "failed": int(counts.get("failed", 0)),

@@ -206,6 +206,11 @@ class RegistrationParams(_Stage):
     # presets, whose sub-maps are walls and pillar rows)
     screening: bool = True
     screen_keep: int = 4
+    # a pair whose screening matched at least this many stems is searched in a box of
+    # screen_box (xy m, heading deg) around the screening motion (accurate to about 1 cm and
+    # 0.1 deg on Sylva's surveys), then in the no-prior box if that fails (0: always no-prior)
+    screen_centre_min: int = 4
+    screen_box: tuple[float, float] = (1.0, 10.0)
 
 
 class MappingParams(_Stage):

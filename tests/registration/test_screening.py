@@ -129,3 +129,29 @@ def test_unplaced_scans_are_retried_against_their_next_best_partners():
     assert (extra.hheading_deg == 180.0).all() and (extra.screen_score >= 5).all()
     none = retry_candidates(ids, cand, cand.assign(status="accepted"), stems, keep=1)
     assert len(none) == 0
+
+
+def test_well_matched_pairs_are_searched_around_their_screening_motion():
+    """Pairs with enough matched stems get a small box around the screening motion (the truth
+    inside it); ``widened`` gives the same pairs the no-prior box for a second search."""
+    from forestmap_assets.core.registration.candidates import widened
+
+    rng = np.random.default_rng(3)
+    forest = _forest(rng)
+    a, pa = _view(rng, forest, np.array([30.0, 30.0]))
+    b, pb = _view(rng, forest, np.array([36.0, 33.0]))
+    df = candidate_pairs(["a", "b"], reach={"a": 14.0, "b": 14.0}, stems={"a": a, "b": b}, screen_keep=2,
+                         screen_centre_min=4, screen_box=(1.0, 10.0))
+    row = df.iloc[0]
+    assert row.source == "screened" and row.hx == 1.0 and row.hheading_deg == 10.0
+    want = _relative(pb, pa)
+    assert np.hypot(row.cx - want[0], row.cy - want[1]) < 0.15
+    assert abs((row.cheading_deg - want[2] + 180) % 360 - 180) < 1.5
+    again = widened(df, reach={"a": 14.0, "b": 14.0})
+    assert len(again) == 1 and again.iloc[0].source == "no_prior" and again.iloc[0].hheading_deg == 180.0
+    assert again.iloc[0].cx == 0.0 and again.iloc[0].hx == 14.0
+    # unrelated layouts: too few matches, the no-prior box
+    c, _ = _view(rng, _forest(rng), np.array([33.0, 31.0]))
+    other = candidate_pairs(["a", "c"], reach={"a": 14.0, "c": 14.0}, stems={"a": a, "c": c}, screen_keep=2,
+                            screen_centre_min=8, screen_box=(1.0, 10.0))
+    assert other.iloc[0].source == "no_prior" and other.iloc[0].hheading_deg == 180.0

@@ -60,6 +60,8 @@ def candidate_pairs(
     stems: dict | None = None,
     screen_keep: int = 0,
     screen_settings=None,
+    screen_centre_min: int = 0,
+    screen_box: tuple[float, float] | None = None,
     progress=None,
 ) -> pd.DataFrame:
     """Candidate pairs ``scan, reference`` with box centre ``cx, cy, cz, cheading_deg`` and
@@ -73,7 +75,11 @@ def candidate_pairs(
     distance of its sub-map points from its origin}. ``k_nearest``, ``max_distance_m`` and
     ``max_xy_m`` are (inferred) parameters. ``stems`` = {scan id: (n, 3) ``x, y, radius_m``} and
     ``screen_keep`` screen the no-prior pairs (module docstring; ``screen_settings``: a
-    :class:`~.screening.ScreenSettings`).
+    :class:`~.screening.ScreenSettings`). A kept pair whose screening matched at least
+    ``screen_centre_min`` (> 0) stems is centred on the screening motion and searched in the
+    ``screen_box`` (xy m, heading deg; default the ``search`` box), as around an a priori alignment (``source = 'screened'``; the Fourier
+    candidates do the same, men spec 4.4); the pairwise stage searches it again with the
+    no-prior box when that fails (inferred, issue 17).
     """
     ids = [str(s) for s in scan_ids]
     xy_m, z_m, heading_deg = (float(v) for v in search)
@@ -114,20 +120,36 @@ def candidate_pairs(
                              hheading_deg=heading_deg, source="a_priori"))
         return _table(rows)
     score: dict[tuple[str, str], float] = {}
+    motion: dict[tuple[str, str], tuple[float, float, float]] = {}
     kept = None
     if stems is not None and screen_keep > 0:
         empty = np.zeros((0, 3))
         table = screen_scores({s: np.asarray(stems.get(s, empty), float) for s in ids},
                               screen_settings or ScreenSettings(), progress=progress)
         score = {(r.scan, r.reference): float(r.score) for r in table.itertuples(index=False)}
+        motion = {(r.scan, r.reference): (float(r.x), float(r.y), float(r.heading_deg))
+                  for r in table.itertuples(index=False)}
         if len(ids) > screen_keep + 1:
             kept = keep_best(table, screen_keep)
     for i in range(len(ids)):
         for j in range(i + 1, len(ids)):
             if kept is not None and (ids[j], ids[i]) not in kept:
                 continue
-            rows.append(_no_prior_row(ids[j], ids[i], reach, xy_m, z_m, max_xy_m,
-                                      score.get((ids[j], ids[i]), np.nan)))
+            row = _no_prior_row(ids[j], ids[i], reach, xy_m, z_m, max_xy_m, score.get((ids[j], ids[i]), np.nan))
+            m = motion.get((ids[j], ids[i]))
+            if screen_centre_min > 0 and row["screen_score"] >= screen_centre_min and m and np.all(np.isfinite(m)):
+                bx, bh = screen_box or (xy_m, heading_deg)
+                row.update(cx=m[0], cy=m[1], cheading_deg=m[2], hx=bx, hy=bx, hheading_deg=bh, source="screened")
+            rows.append(row)
+    return _table(rows)
+
+
+def widened(candidates: pd.DataFrame, reach=None, z_m: float = 1.25, max_xy_m: float = 20.0,
+            xy_m: float = 5.0) -> pd.DataFrame:
+    """The ``screened`` rows of ``candidates`` with the no-prior box again (centre 0, heading
+    the full circle): the second search of a pair whose screening-centred search failed."""
+    rows = [_no_prior_row(r.scan, r.reference, reach, xy_m, z_m, max_xy_m, r.screen_score)
+            for r in candidates.itertuples(index=False) if r.source == "screened"]
     return _table(rows)
 
 
