@@ -93,7 +93,8 @@ def registration_assets(campaign: Campaign) -> list:
             a_priori=a_priori, search=(reg.xy_m, reg.z_m, reg.heading_deg), reach=reach,
             k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
             stems=stems, screen_keep=reg.screen_keep if screen else 0,
-            screen_centre_min=reg.screen_centre_min if screen else 0, screen_box=tuple(reg.screen_box),
+            # no_prior_method fourier centres the no-prior boxes on its own result instead
+            screen_centre_min=reg.screen_centre_min if screen and not fourier else 0, screen_box=tuple(reg.screen_box),
             progress=lambda m: (context.log.info(m), report(m)),
         )
         if fourier and len(table) and (table["source"] == "no_prior").any():
