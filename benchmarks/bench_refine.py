@@ -26,6 +26,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from forestmap_assets.assets.registration import _cloud
+from forestmap_assets.core.geometry import relative_pose
 from forestmap_assets.core.registration.refine import POSE, SD, refine_registrations
 from forestmap_assets.params.men import RefineSettings
 
@@ -44,12 +45,8 @@ def cases_from_runs(runs: Path) -> list[tuple[str, Path, Path]]:
 
 def relative_truth(truth: pd.DataFrame, scan: str, ref: str) -> np.ndarray:
     """Pose of ``scan`` in ``ref``'s levelled frame (x, y, z, heading_deg) from world poses."""
-    a, b = truth.loc[scan], truth.loc[ref]
-    h = np.radians(b.heading_deg)
-    c, s = np.cos(h), np.sin(h)
-    d = np.array([a.x - b.x, a.y - b.y])
-    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], a.z - b.z,
-                     (a.heading_deg - b.heading_deg + 180.0) % 360.0 - 180.0])
+    cols = ["x", "y", "z", "heading_deg"]
+    return np.array(relative_pose(truth.loc[scan, cols].to_numpy(float), truth.loc[ref, cols].to_numpy(float)))
 
 
 def run_case(label: str, store: Path, truth_csv: Path) -> list[dict]:

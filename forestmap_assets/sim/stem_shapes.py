@@ -176,12 +176,7 @@ def _axis_rings(row, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     k = np.pi / row["height_m"]
     bow = row["sweep_m"] * np.sin(k * h)
     dbow = row["sweep_m"] * k * np.cos(k * h)
-    centre = np.column_stack([row["x_base"] + row["lean_x"] * h + bow * np.cos(a),
-                              row["y_base"] + row["lean_y"] * h + bow * np.sin(a),
-                              row["z_base"] + h])
-    tangent = np.column_stack([row["lean_x"] + dbow * np.cos(a), row["lean_y"] + dbow * np.sin(a),
-                               np.ones_like(h)])
-    return centre, tangent
+    return _leaning_curve(row, (row["x_base"], row["y_base"], row["z_base"]), h, bow, dbow, a)
 
 
 def _fork_rings(row, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -192,11 +187,18 @@ def _fork_rings(row, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = row["fork_bend_m"]
     out = t * b * (1 - np.exp(-u / b))
     dout = t * np.exp(-u / b)
-    centre = np.column_stack([row["fork_x"] + row["lean_x"] * u + out * np.cos(a),
-                              row["fork_y"] + row["lean_y"] * u + out * np.sin(a),
-                              row["fork_z"] + u])
-    tangent = np.column_stack([row["lean_x"] + dout * np.cos(a), row["lean_y"] + dout * np.sin(a),
-                               np.ones_like(h)])
+    return _leaning_curve(row, (row["fork_x"], row["fork_y"], row["fork_z"]), u, out, dout, a)
+
+
+def _leaning_curve(row, origin, u: np.ndarray, off: np.ndarray, doff: np.ndarray,
+                   azimuth_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centres and tangents of a curve rising ``u`` above ``origin`` with the stem's lean and a
+    horizontal offset ``off`` (slope ``doff``) toward ``azimuth_rad``."""
+    c, s = np.cos(azimuth_rad), np.sin(azimuth_rad)
+    centre = np.column_stack([origin[0] + row["lean_x"] * u + off * c,
+                              origin[1] + row["lean_y"] * u + off * s,
+                              origin[2] + u])
+    tangent = np.column_stack([row["lean_x"] + doff * c, row["lean_y"] + doff * s, np.ones_like(u)])
     return centre, tangent
 
 

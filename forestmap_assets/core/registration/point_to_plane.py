@@ -10,6 +10,15 @@ from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_ma
 from forestmap_assets.core.registration.icp_uncertainty import pose_jacobian
 
 
+def plane_residuals(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float) -> np.ndarray:
+    """Signed point-to-plane distances ``n . (m - p)`` of the moved data points to their nearest
+    model point within ``radius_m`` (pairs without a model normal left out)."""
+    d, idx = tree.query(moved, distance_upper_bound=radius_m, workers=-1)
+    ok = np.isfinite(d)
+    ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
+    return (normals[idx[ok]] * (tree.data[idx[ok]] - moved[ok])).sum(axis=1)
+
+
 def point_to_plane_4dof(
     model_xyz: np.ndarray,
     model_normals: np.ndarray,

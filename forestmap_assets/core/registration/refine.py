@@ -68,9 +68,10 @@ from forestmap_assets.core.registration.hicp import (
 from forestmap_assets.core.registration.icp_uncertainty import icp_covariance, pose_sd
 from forestmap_assets.core.registration.point_to_plane import (
     open3d_point_to_plane,
+    plane_residuals,
     point_to_plane_4dof,
 )
-from forestmap_assets.core.registration.two_way import RefineCloud, two_way_refine
+from forestmap_assets.core.registration.two_way import RefineCloud, crop_mask, two_way_refine
 from forestmap_assets.params.men import RefineSettings
 
 POSE = ["dx", "dy", "dz", "dheading_deg"]
@@ -85,22 +86,8 @@ REFINE_COLUMNS = [
 ]
 
 
-def _crop(points: np.ndarray, max_range_m: float, z_band) -> np.ndarray:
-    return ((np.linalg.norm(points[:, :2], axis=1) <= max_range_m)
-            & (points[:, 2] >= z_band[0]) & (points[:, 2] <= z_band[1]))
-
-
 def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.all((points >= lo) & (points <= hi), axis=1)
-
-
-def _plane_residuals(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float) -> np.ndarray:
-    """Signed point-to-plane distances ``n . (m - p)`` of the moved data points to their nearest
-    model point within ``radius_m`` (pairs without a model normal left out)."""
-    d, idx = tree.query(moved, distance_upper_bound=radius_m)
-    ok = np.isfinite(d)
-    ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
-    return (normals[idx[ok]] * (tree.data[idx[ok]] - moved[ok])).sum(axis=1)
 
 
 def fit_error(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float,
@@ -111,7 +98,7 @@ def fit_error(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: f
     barely changes with a few millimetres of misalignment). With ``truncate_m`` each distance
     counts at most that much (a pair of different surfaces, e.g. the two sides of a stem, then
     weighs as little as in the robust ICP; inferred)."""
-    res = np.abs(_plane_residuals(tree, normals, moved, radius_m))
+    res = np.abs(plane_residuals(tree, normals, moved, radius_m))
     if res.size == 0:
         return np.nan, 0
     if truncate_m is not None:
@@ -121,7 +108,7 @@ def fit_error(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: f
 
 def robust_scale(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float) -> float:
     """1.4826 x the median absolute deviation of the point-to-plane distances (robust sigma)."""
-    res = _plane_residuals(tree, normals, moved, radius_m)
+    res = plane_residuals(tree, normals, moved, radius_m)
     if res.size == 0:
         return np.nan
     return float(1.4826 * np.median(np.abs(res - np.median(res))))
@@ -146,16 +133,14 @@ def refine_pair(
     row.update({f"bnb_{k}": v for k, v in zip(SD, sd, strict=True)})
     row.update(used="branch_and_bound", reason="", converged=False, at_box_edge=False, iterations=0)
     colour = scan_hue is not None and ref_hue is not None
-    method = s.method if s.method != "auto" else ("hicp" if colour else "point_to_plane")
-    if method == "hicp" and not colour:
-        method = "point_to_plane"
+    method = _resolved_method(s, colour)
     row["method"] = method
     if method == "none":
         row["reason"] = "refinement switched off"
         return row
 
     data, model = np.asarray(scan_xyz, dtype=np.float64), np.asarray(ref_xyz, dtype=np.float64)
-    keep_d, keep_m = _crop(data, s.max_range_m, s.z_band_m), _crop(model, s.max_range_m, s.z_band_m)
+    keep_d, keep_m = crop_mask(data, s), crop_mask(model, s)
     data, model = data[keep_d], model[keep_m]
     hd = np.asarray(scan_hue)[keep_d] if colour else None
     hm = np.asarray(ref_hue)[keep_m] if colour else None

@@ -39,7 +39,7 @@ from forestmap_assets.core.cloud import voxel_subsample
 from forestmap_assets.core.geometry import wrap_deg
 from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_matrix
 from forestmap_assets.core.registration.icp_uncertainty import icp_covariance, pose_sd
-from forestmap_assets.core.registration.point_to_plane import point_to_plane_4dof
+from forestmap_assets.core.registration.point_to_plane import plane_residuals, point_to_plane_4dof
 from forestmap_assets.params.men import RefineSettings
 
 
@@ -57,14 +57,19 @@ class RefineCloud:
     @classmethod
     def from_points(cls, xyz: np.ndarray, s: RefineSettings) -> RefineCloud:
         p = np.asarray(xyz, dtype=np.float64)
-        keep = ((np.linalg.norm(p[:, :2], axis=1) <= s.max_range_m)
-                & (p[:, 2] >= s.z_band_m[0]) & (p[:, 2] <= s.z_band_m[1]))
-        p = p[keep]
+        p = p[crop_mask(p, s)]
         model = p[voxel_subsample(p, s.two_way_model_voxel_m)] if s.two_way_model_voxel_m and len(p) else p
         data = p[voxel_subsample(p, s.data_voxel_m)] if s.data_voxel_m and len(p) else p
         if s.max_data_points and len(data) > s.max_data_points:  # a fixed, seeded thinning
             data = data[np.sort(np.random.default_rng(0).choice(len(data), s.max_data_points, replace=False))]
         return cls(data=data, model=model, normals=sensor_normals(model, s.normal_k), tree=cKDTree(model))
+
+
+def crop_mask(points: np.ndarray, s: RefineSettings) -> np.ndarray:
+    """Points within ``max_range_m`` of the sensor and in its height band ``z_band_m`` (drops
+    the noisy, porous canopy, spec 10)."""
+    return ((np.linalg.norm(points[:, :2], axis=1) <= s.max_range_m)
+            & (points[:, 2] >= s.z_band_m[0]) & (points[:, 2] <= s.z_band_m[1]))
 
 
 def sensor_normals(points: np.ndarray, k: int) -> np.ndarray:
@@ -87,13 +92,6 @@ def invert_pose(pose) -> np.ndarray:
     """The 4-DoF pose of the reference in the scan's frame, from the scan's in the reference's."""
     r, t = pose4_to_matrix(pose)
     return matrix_to_pose4(r.T, -r.T @ t)
-
-
-def _residuals(cloud: RefineCloud, moved: np.ndarray, radius_m: float) -> np.ndarray:
-    d, idx = cloud.tree.query(moved, distance_upper_bound=radius_m, workers=-1)
-    ok = np.isfinite(d)
-    ok[ok] &= np.isfinite(cloud.normals[idx[ok]]).all(axis=1)
-    return (cloud.normals[idx[ok]] * (cloud.model[idx[ok]] - moved[ok])).sum(axis=1)
 
 
 def _overlap(data: np.ndarray, model: np.ndarray, pose, margin: float) -> np.ndarray:
@@ -124,7 +122,7 @@ def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineS
         return None
     r0, t0 = pose4_to_matrix(pose)
     fine = s.two_way_radii_m[-1]
-    start_res = _residuals(model_cloud, data @ r0.T + t0, fine)
+    start_res = plane_residuals(model_cloud.tree, model_cloud.normals, data @ r0.T + t0, fine)
     if len(start_res) < s.min_pairs:
         return None
     fit_start = float(np.abs(start_res).mean())
@@ -137,7 +135,7 @@ def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineS
     new[3] = wrap_deg(new[3])
     r1, t1 = pose4_to_matrix(new)
     moved = data @ r1.T + t1
-    end_res = _residuals(model_cloud, moved, fine)
+    end_res = plane_residuals(model_cloud.tree, model_cloud.normals, moved, fine)
     fit_end = float(np.abs(end_res).mean()) if len(end_res) else np.nan
     dist, idx = model_cloud.tree.query(moved, distance_upper_bound=fine)
     ok = np.isfinite(dist)
