@@ -7,6 +7,7 @@ from pathlib import Path
 import pyarrow as pa
 from upath import UPath
 
+from forestmap_assets.assets.common import PAIR_STAGES
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.campaign import Campaign, load_campaign
 from forestmap_assets.io.store import default_store_url, read_bundle, read_table
@@ -25,7 +26,8 @@ def load_asset(name: str, *, campaign: str | Path | Campaign, scan: str | None =
     """One stored asset output: a DataFrame, a dict of DataFrames (bundles) or a RangeImage.
 
     ``campaign`` is a campaign folder, a :class:`Campaign` or its key; ``scan`` selects the
-    partition of a per-scan asset. Raises ``FileNotFoundError`` (one line) when the asset has
+    partition of a per-scan asset (or a pair, ``<scan>__<reference>``, of a per-pair asset;
+    without it a per-pair asset's pairs come as one bundle). Raises ``FileNotFoundError`` (one line) when the asset has
     not been materialised.
     """
     base = UPath(store_url or default_store_url()) / _campaign_key(campaign) / name
@@ -39,5 +41,11 @@ def load_asset(name: str, *, campaign: str | Path | Campaign, scan: str | None =
         return table.to_pandas()
     if bundle_path.exists():
         return read_bundle(bundle_path)
+    if scan is None and name in PAIR_STAGES and base.is_dir():  # every pair partition (issue 17)
+        from forestmap_assets.assets.pairs import combine_pairs
+
+        parts = {p.name[: -len(".bundle")]: read_bundle(p) for p in base.iterdir() if p.name.endswith(".bundle")}
+        if parts:
+            return combine_pairs(parts)
     what = f"{name}[{scan}]" if scan is not None else name
     raise FileNotFoundError(f"{what} of campaign {_campaign_key(campaign)!r} is not in the store {base.parent} (run `forestmap run` first)")

@@ -88,6 +88,8 @@ def _parser() -> argparse.ArgumentParser:
 
     st = command("status", "state of each asset of a campaign")
     st.add_argument("campaign", type=Path)
+    st.add_argument("--detail", action="store_true",
+                    help="also one line per scan and per pair partition, and counts per state")
 
     u = command("ui", "start the Dagster UI on this project's workspace")
     u.add_argument("--port", type=int, default=3000)
@@ -184,8 +186,10 @@ def cmd_run(args) -> int:
                                workers=args.workers, dask_address=args.dask_address)
     if summary.not_built:
         _say(args, f"not yet built in this version of forestmap: {', '.join(summary.not_built)}")
-    if any(scan is None for _, scan, _ in summary.failures):  # a campaign-level stage failed
-        stage, scan, reason = summary.failures[0]
+    ids = set(summary.campaign.scan_ids)
+    # a campaign-level or pair stage failed (a failed scan is left out, below)
+    if any(scan not in ids for _, scan, _ in summary.failures):
+        stage, scan, reason = next(f for f in summary.failures if f[1] not in ids)
         where = f"{stage}[{scan}]" if scan else stage
         more = f" (and {len(summary.failures) - 1} more failures)" if len(summary.failures) > 1 else ""
         raise UsageError(f"{where} failed: {reason}{more}")
@@ -259,7 +263,12 @@ def cmd_status(args) -> int:
     from forestmap_assets.assets.common import asset_key
 
     for state in stage_states(defs, campaign, instance):
-        print(f"{asset_key(campaign, state.stage).to_user_string()} {state.state}")
+        name = asset_key(campaign, state.stage).to_user_string()
+        print(f"{name} {state.state}")
+        if args.detail and state.granularity != "campaign":
+            print(f"  {state.counts()}")
+            for part, value in state.per_partition.items():
+                print(f"  {name}[{part}] {value}")
     return 0
 
 

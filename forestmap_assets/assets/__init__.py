@@ -5,8 +5,8 @@ registration, map, exploration). May import: ``core``, ``io``, ``outputs``, ``ac
 :func:`campaign_assets` is an asset factory: every campaign gets its own assets under the key
 prefix ``<campaign>/`` with per-scan partitions, so each campaign's parameter overrides enter
 its own code versions (README, "How the asset graph is organised"). :func:`campaign_jobs` gives
-each campaign two asset jobs: its per-scan assets (one run per scan partition) and its
-campaign-level assets.
+each campaign three asset jobs: its per-scan assets (one run per scan partition), its per-pair
+assets (one run per pair partition) and its campaign-level assets.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from dagster import (
     define_asset_job,
 )
 
-from forestmap_assets.assets.common import CAMPAIGN_STAGES, asset_key, job_name
+from forestmap_assets.assets.common import CAMPAIGN_STAGES, asset_key, job_name, pair_partitions
 from forestmap_assets.assets.exploration import exploration_assets
 from forestmap_assets.assets.features import feature_assets
 from forestmap_assets.assets.ingest import ingest_assets
@@ -79,25 +79,33 @@ def campaign_assets(campaign: Campaign) -> list:
 
 
 def campaign_jobs(campaign: Campaign, assets: list | None = None) -> list:
-    """The campaign's per-scan job (its scan-partitioned assets) and campaign-level job (the
-    others); ``assets`` defaults to :func:`campaign_assets`."""
-    scan_keys, level_keys = [], []
+    """The campaign's per-scan job (its scan-partitioned assets), per-pair job (its
+    pair-partitioned assets, issue 17) and campaign-level job (the others); ``assets`` defaults
+    to :func:`campaign_assets`."""
+    keys: dict[str, list] = {"scan": [], "pair": [], "campaign": []}
+    pairs = pair_partitions(campaign).name
     for a in assets if assets is not None else campaign_assets(campaign):
         if getattr(a, "is_materializable", False):
-            (scan_keys if a.partitions_def is not None else level_keys).extend(a.keys)
-    scan = AssetSelection.assets(*scan_keys)
-    level = AssetSelection.assets(*level_keys)
+            part = a.partitions_def
+            kind = "campaign" if part is None else "pair" if getattr(part, "name", None) == pairs else "scan"
+            keys[kind].extend(a.keys)
     return [
         define_asset_job(
             job_name(campaign, "scan"),
-            selection=scan,  # partitioned by scan, as its assets
+            selection=AssetSelection.assets(*keys["scan"]),  # partitioned by scan, as its assets
             description=f"Per-scan feature extraction of campaign {campaign.name!r}: one run per scan.",
             tags={"forestmap/campaign": campaign.key},
         ),
         define_asset_job(
+            job_name(campaign, "pair"),
+            selection=AssetSelection.assets(*keys["pair"]),  # partitioned by pair
+            description=f"Registration of one pair of scans of campaign {campaign.name!r}: one run per pair.",
+            tags={"forestmap/campaign": campaign.key},
+        ),
+        define_asset_job(
             job_name(campaign, "campaign"),
-            selection=level,
-            description=f"Registration, optimal map and tree list of campaign {campaign.name!r}.",
+            selection=AssetSelection.assets(*keys["campaign"]),
+            description=f"Candidate pairs, optimal map and tree list of campaign {campaign.name!r}.",
             tags={"forestmap/campaign": campaign.key},
         ),
     ]

@@ -35,8 +35,9 @@ CODE_VERSIONS: dict[str, str] = {
     "elevation_maps": "1",
     "submaps": "1",
     "candidate_pairs": "2",
-    "pairwise_registrations": "2",
-    "refined_registrations": "2",
+    "pairwise_registrations": "3",
+    "refined_registrations": "3",
+    "retry_pairs": "1",
     "optimal_map": "3",
     "residual_checks": "1",
     "integrated_map": "2",
@@ -55,6 +56,7 @@ STAGE_PARAMS: dict[str, tuple[str, ...]] = {
     "candidate_pairs": ("registration",),
     "pairwise_registrations": ("registration", "elevation"),
     "refined_registrations": ("refine",),
+    "retry_pairs": ("registration",),
     "optimal_map": ("mapping",),
     "residual_checks": ("mapping",),
     "integrated_map": ("elevation",),
@@ -71,8 +73,9 @@ PIPELINE: tuple[tuple[str, str], ...] = (
     ("elevation_maps", "scan"),
     ("submaps", "scan"),
     ("candidate_pairs", "campaign"),
-    ("pairwise_registrations", "campaign"),
-    ("refined_registrations", "campaign"),  # Men 2012 ch. 5: fine registration on raw points
+    ("pairwise_registrations", "pair"),
+    ("refined_registrations", "pair"),  # Men 2012 ch. 5: fine registration on raw points
+    ("retry_pairs", "campaign"),  # issue 17: partners for the scans the pairs left unplaced
     ("optimal_map", "campaign"),
     ("residual_checks", "campaign"),
     ("integrated_map", "campaign"),
@@ -85,6 +88,39 @@ PIPELINE: tuple[tuple[str, str], ...] = (
 def scan_partitions(campaign: Campaign) -> DynamicPartitionsDefinition:
     """Per-scan partitions of one campaign (dynamic: adding a scan adds one partition)."""
     return DynamicPartitionsDefinition(name=f"{campaign.key}__scans")
+
+
+def pair_partitions(campaign: Campaign) -> DynamicPartitionsDefinition:
+    """Per-pair partitions of one campaign (issue 17): keys ``<scan>__<reference>``, the set
+    kept equal to the pairs ``candidate_pairs`` and ``retry_pairs`` ask for."""
+    return DynamicPartitionsDefinition(name=f"{campaign.key}__pairs")
+
+
+PAIR_SEPARATOR = "__"
+
+
+def pair_key(scan: str, reference: str) -> str:
+    return f"{scan}{PAIR_SEPARATOR}{reference}"
+
+
+def split_pair_key(key: str, scan_ids) -> tuple[str, str]:
+    """``(scan, reference)`` of a pair key; scan ids may hold ``__`` themselves, so the split is
+    the one whose two halves are both scans of the campaign."""
+    ids = set(scan_ids)
+    parts = key.split(PAIR_SEPARATOR)
+    for k in range(1, len(parts)):
+        a, b = PAIR_SEPARATOR.join(parts[:k]), PAIR_SEPARATOR.join(parts[k:])
+        if a in ids and b in ids:
+            return a, b
+    raise ValueError(f"pair {key!r} does not name two scans of the campaign")
+
+
+def screened(campaign: Campaign) -> bool:
+    """Whether the campaign's pairs are chosen by stem-layout screening (no a priori pairs or
+    poses, ``registration.screening`` on): then ``retry_pairs`` exists (issue 17)."""
+    reg = campaign.params.registration
+    no_prior = not campaign.pairs and any(s.a_priori is None for s in campaign.scans)
+    return bool(no_prior and reg.screening and reg.screen_keep > 0)
 
 
 def asset_key(campaign: Campaign, stage: str) -> AssetKey:
@@ -100,6 +136,7 @@ STAGE_MANIFEST: dict[str, tuple[str, ...]] = {
 }
 
 SCAN_STAGES: tuple[str, ...] = tuple(s for s, g in PIPELINE if g == "scan")
+PAIR_STAGES: tuple[str, ...] = tuple(s for s, g in PIPELINE if g == "pair")
 CAMPAIGN_STAGES: tuple[str, ...] = tuple(s for s, g in PIPELINE if g == "campaign")
 
 
@@ -155,7 +192,8 @@ def code_version(campaign: Campaign, stage: str) -> str:
 
 def job_name(campaign: Campaign, kind: str) -> str:
     """Name of a campaign's asset job: ``kind`` is ``scan`` (per-scan assets, partitioned by
-    scan) or ``campaign`` (campaign-level assets)."""
+    scan), ``pair`` (per-pair assets, partitioned by pair) or ``campaign`` (campaign-level
+    assets)."""
     return f"{campaign.key}__{kind}_assets"
 
 

@@ -23,8 +23,10 @@ from forestmap_assets.assets.common import (
     data_version,
     md_table,
     png_metadata,
+    screened,
     timed,
 )
+from forestmap_assets.assets.pairs import combine_pairs
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.figures.elevation import elevation_figure
 from forestmap_assets.outputs.figures.mapping import dbh_histogram, network_figure
@@ -66,7 +68,10 @@ def mapping_assets(campaign: Campaign) -> list:
 
     @asset(
         key=key("optimal_map"),
-        ins={"refined_registrations": AssetIn(key=key("refined_registrations"))},
+        ins={"refined_registrations": AssetIn(key=key("refined_registrations"),
+                                              metadata={"allow_missing_partitions": True})},
+        # the pair lists decide which pair partitions exist (a pair dropped from them leaves the map)
+        deps=[key("candidate_pairs"), *([key("retry_pairs")] if screened(campaign) else [])],
         group_name="map",
         code_version=code_version(campaign, "optimal_map"),
         description="Global poses and covariances: links admitted one at a time (most confident "
@@ -76,7 +81,8 @@ def mapping_assets(campaign: Campaign) -> list:
     )
     @timed
     def optimal_map(context, refined_registrations):
-        regs = refined_registrations["registrations"]  # branch and bound, refined where it fits better
+        # every pair partition: branch and bound, refined where it fits better
+        regs = combine_pairs(refined_registrations).get("registrations", pd.DataFrame(columns=["status"]))
         accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
         mp = params.mapping
         if accepted.empty:  # only the reference scan is placed: it defines the frame

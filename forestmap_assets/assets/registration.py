@@ -1,14 +1,23 @@
 """Registration assets (thesis ch. 5; spec 6-7; men spec 4-5): ``candidate_pairs`` (which
-sub-map pairs to search, and their boxes), ``pairwise_registrations`` (branch and bound over
-Olson's score) and ``refined_registrations`` (fine registration on the raw points, hue-assisted
-ICP or point-to-plane, used where it fits better; :mod:`forestmap_assets.core.registration.refine`).
+sub-map pairs to search, and their boxes), then per pair (partitions ``<scan>__<reference>``,
+:mod:`.pairs`) ``pairwise_registrations`` (branch and bound over Olson's score) and
+``refined_registrations`` (fine registration on the raw points, hue-assisted ICP or
+point-to-plane, used where it fits better; :mod:`forestmap_assets.core.registration.refine`),
+and ``retry_pairs`` (partners for the scans left unplaced).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-from dagster import AssetIn, MetadataValue, Output, asset
+from dagster import (
+    AssetIn,
+    DataVersion,
+    DataVersionsByPartition,
+    Output,
+    asset,
+    observable_source_asset,
+)
 
 from forestmap_assets.assets.common import (
     all_scans,
@@ -16,7 +25,17 @@ from forestmap_assets.assets.common import (
     code_version,
     data_version,
     md_table,
+    pair_partitions,
+    screened,
     timed,
+)
+from forestmap_assets.assets.pairs import (
+    candidate_row,
+    combine_pairs,
+    pair_fingerprints,
+    pair_rows,
+    read_stored,
+    scans_of,
 )
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.progress import report
@@ -56,8 +75,7 @@ def registration_assets(campaign: Campaign) -> list:
 
     fourier = params.registration.no_prior_method == "fourier"  # raw points for the coarse step
     # stem-layout screening of the no-prior pairs reads the cylinder segments (inferred, issue 17)
-    no_prior = not campaign.pairs and any(s.a_priori is None for s in campaign.scans)
-    screen = no_prior and params.registration.screening and params.registration.screen_keep > 0
+    screen = screened(campaign)
 
     @asset(
         key=key("candidate_pairs"),
@@ -110,127 +128,162 @@ def registration_assets(campaign: Campaign) -> list:
                 "table": md_table(table)}
         return Output(table, metadata=meta, data_version=data_version(table))
 
+    pairs = pair_partitions(campaign)
+
+    @observable_source_asset(
+        key=key("pair_inputs"),
+        partitions_def=pairs,
+        group_name="registration",
+        required_resource_keys={"io_manager"},
+        description="What one pair step reads, observed per pair (issue 17): the hash of the "
+        "pair's candidate row (box, source) and of the data versions of its two scans' submaps, "
+        "elevation maps and range images; a pair becomes stale when these change.",
+    )
+    def pair_inputs(context) -> DataVersionsByPartition:
+        fps = pair_fingerprints(campaign, context.instance, pair_rows(context.resources.io_manager, campaign))
+        keys = context.partition_keys if context.has_partition_key_range else list(fps)
+        return DataVersionsByPartition({k: DataVersion(fps.get(k, "missing")) for k in keys})
+
+    def register(table, submaps, elevation, progress):
+        reg = params.registration
+        return register_candidates(table, submaps, reg, elevation=elevation, elevation_cell_m=params.elevation.cell_m,
+                                   likelihood_temperature=reg.likelihood_temperature,
+                                   heading_temperature=reg.heading_temperature,
+                                   ground_min_sd_m=reg.ground_min_sd_m,
+                                   feature_z_sd_m=reg.feature_z_sd_m, progress=progress)
+
     @asset(
         key=key("pairwise_registrations"),
-        ins={
-            "candidate_pairs": AssetIn(key=key("candidate_pairs")),
-            "submaps": all_scans(key("submaps")),
-            "elevation_maps": all_scans(key("elevation_maps")),
-            **({"cylinder_segments": all_scans(key("cylinder_segments"))} if screen else {}),
-        },
+        partitions_def=pairs,
+        deps=[pair_inputs],
+        required_resource_keys={"io_manager"},
         group_name="registration",
         code_version=code_version(campaign, "pairwise_registrations"),
-        description="Globally optimal 4-DoF registration of every candidate pair by branch and "
-        "bound over Olson's score: best cell, score-weighted cloud centre and sigma (JP eq. 6), "
-        "every level's surviving cells, secondary hypotheses (thesis 5.3.3; spec 6.3-6.7); dz "
-        "refined from the ground elevation maps (spec 9's proposed use). With screening, scans "
-        "the accepted pairs leave unplaced are retried against their next best screened partners "
-        "(inferred, issue 17).",
+        description="Globally optimal 4-DoF registration of one candidate pair (partition "
+        "<scan>__<reference>) by branch and bound over Olson's score: best cell, score-weighted "
+        "cloud centre and sigma (JP eq. 6), every level's surviving cells, secondary hypotheses "
+        "(thesis 5.3.3; spec 6.3-6.7); dz refined from the ground elevation maps (spec 9's "
+        "proposed use). A pair centred on its screening motion that fails is searched again in "
+        "the no-prior box (inferred, issue 17).",
     )
     @timed
-    def pairwise_registrations(context, candidate_pairs, submaps, elevation_maps, **raw):
-        reg = params.registration
-        progress = lambda m: (context.log.info(m), report(m))  # noqa: E731
-
-        def register(table):
-            return register_candidates(table, submaps or {}, reg,
-                                       elevation=elevation_maps or {}, elevation_cell_m=params.elevation.cell_m,
-                                       likelihood_temperature=reg.likelihood_temperature,
-                                       heading_temperature=reg.heading_temperature,
-                                       ground_min_sd_m=reg.ground_min_sd_m,
-                                       feature_z_sd_m=reg.feature_z_sd_m, progress=progress)
-
-        bundle = register(candidate_pairs)
-        regs = bundle["registrations"]
-        # issue 17: a pair centred on its screening motion that failed is searched again in the
-        # no-prior box (the motion may have been wrong)
-        failed = set(zip(regs.loc[regs["status"] != "accepted", "scan"], regs.loc[regs["status"] != "accepted", "reference"],
-                         strict=True))
-        again_mask = np.array([(a, b) in failed for a, b in zip(candidate_pairs["scan"], candidate_pairs["reference"],
-                                                                   strict=True)], dtype=bool)
-        screened = candidate_pairs[(candidate_pairs["source"] == "screened").to_numpy() & again_mask] \
-            if len(candidate_pairs) else candidate_pairs
-        widened_pairs = 0
-        if len(screened):
+    def pairwise_registrations(context):
+        io = context.resources.io_manager
+        scan, ref = scans_of(campaign, context.partition_key)
+        row = candidate_row(io, campaign, context.partition_key)
+        submaps = {sid: t for sid in (scan, ref) if (t := read_stored(io, campaign, "submaps", sid)) is not None}
+        elevation = {sid: t for sid in (scan, ref) if (t := read_stored(io, campaign, "elevation_maps", sid)) is not None}
+        progress = lambda m: (context.log.info(m), report(f"[{context.partition_key}] {m}"))  # noqa: E731
+        bundle = register(row, submaps, elevation, progress)
+        searched_again = False
+        if row["source"].iloc[0] == "screened" and bundle["registrations"]["status"].iloc[0] != "accepted":
             from forestmap_assets.core.registration.candidates import widened
 
-            again = widened(screened, reach={sid: submap_reach(df) for sid, df in (submaps or {}).items()},
+            reg = params.registration
+            again = widened(row, reach={sid: submap_reach(df) for sid, df in submaps.items()},
                             z_m=reg.z_m, max_xy_m=reg.max_xy_m, xy_m=reg.xy_m)
-            progress(f"searching {len(again)} screened pairs again in the no-prior box")
-            more = register(again)
-            drop = set(zip(again["scan"], again["reference"], strict=True))
-            bundle = {k: pd.concat([v[np.array([(a, b) not in drop for a, b in zip(v["scan"], v["reference"], strict=True)],
-                                               dtype=bool)] if len(v) else v, more[k]], ignore_index=True)
-                      for k, v in bundle.items()}
-            widened_pairs = len(again)
-        retried = 0
-        if screen and len(submaps or {}) > reg.screen_keep + 1:  # issue 17: retry unplaced scans
-            from forestmap_assets.core.registration.candidates import retry_candidates
-            from forestmap_assets.core.registration.screening import stems_from_cylinders
-
-            cylinders = raw.get("cylinder_segments") or {}
-            extra = retry_candidates(
-                list(submaps), candidate_pairs, bundle["registrations"],
-                {sid: stems_from_cylinders(cylinders.get(sid)) for sid in submaps},
-                keep=reg.screen_keep, search=(reg.xy_m, reg.z_m, reg.heading_deg),
-                reach={sid: submap_reach(df) for sid, df in submaps.items()}, max_xy_m=reg.max_xy_m)
-            if len(extra):
-                progress(f"retrying {len(extra)} pairs of unplaced scans")
-                more = register(extra)
-                bundle = {k: pd.concat([v, more[k]], ignore_index=True) for k, v in bundle.items()}
-                retried = len(extra)
+            progress("searching the screened pair again in the no-prior box")
+            bundle = register(again, submaps, elevation, progress)
+            searched_again = True
         regs = bundle["registrations"]
-        counts = regs["status"].value_counts().to_dict()
+        r = regs.iloc[0]
         meta = {
-            "pairs": len(regs),
-            "retried": retried,
-            "searched_again_unscreened": widened_pairs,
-            "accepted": int(counts.get("accepted", 0)),
-            "rejected": int(counts.get("rejected", 0)),
-            "failed": int(counts.get("failed", 0)),
-            "median_seconds": float(regs["seconds"].median()) if len(regs) else 0.0,
-            "registrations": md_table(regs[["scan", "reference", "dx", "dy", "dz", "dheading_deg", "sd_x", "sd_heading_deg", "status", "reason"]]),
+            "status": str(r["status"]),
+            "reason": str(r["reason"]),
+            "source": str(row["source"].iloc[0]),
+            "searched_again_unscreened": searched_again,
+            "search_seconds": float(regs["seconds"].sum()),
+            "registration": md_table(regs[["scan", "reference", "dx", "dy", "dz", "dheading_deg", "sd_x",
+                                           "sd_heading_deg", "status", "reason"]]),
         }
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
     @asset(
         key=key("refined_registrations"),
-        ins={
-            "pairwise_registrations": AssetIn(key=key("pairwise_registrations")),
-            "range_images": AssetIn(key=key("range_images"), metadata={"allow_missing_partitions": True}),
-        },
+        partitions_def=pairs,
+        ins={"pairwise_registrations": AssetIn(key=key("pairwise_registrations"))},
+        deps=[pair_inputs],
+        required_resource_keys={"io_manager"},
         group_name="registration",
         code_version=code_version(campaign, "refined_registrations"),
-        description="Every accepted branch-and-bound registration refined on the raw levelled "
-        "points: hue-assisted ICP (4-D association x, y, z, w*hue; men spec 5) where both scans "
-        "have colour, else robust point-to-plane both ways (scan onto reference and back); "
-        "free to move within a trust region and used when its own fit says so (the two "
+        description="One pair's accepted branch-and-bound registration refined on the raw "
+        "levelled points: hue-assisted ICP (4-D association x, y, z, w*hue; men spec 5) where "
+        "both scans have colour, else robust point-to-plane both ways (scan onto reference and "
+        "back); free to move within a trust region and used when its own fit says so (the two "
         "directions agree, the overlap is kept, the residuals fall); sigmas from the ICP "
         "Hessian and the two directions' disagreement.",
     )
     @timed
-    def refined_registrations(context, pairwise_registrations, range_images):
+    def refined_registrations(context, pairwise_registrations):
         settings = refine_settings(campaign)
         regs = pairwise_registrations["registrations"]
-        needed = set(regs.loc[regs["status"] == "accepted", "scan"]) | set(
-            regs.loc[regs["status"] == "accepted", "reference"])
-        clouds = {sid: _cloud(tbl) for sid, tbl in (range_images or {}).items() if sid in needed}
-        bundle = refine_registrations(regs, clouds, settings, progress=lambda m: (context.log.info(m), report(m)))
+        io = context.resources.io_manager
+        clouds = {}
+        if (regs["status"] == "accepted").any():
+            for sid in scans_of(campaign, context.partition_key):
+                table = read_stored(io, campaign, "range_images", sid)
+                if table is not None:
+                    clouds[sid] = _cloud(table)
+        progress = lambda m: (context.log.info(m), report(f"[{context.partition_key}] {m}"))  # noqa: E731
+        bundle = refine_registrations(regs, clouds, settings, progress=progress)
         ref = bundle["refinements"]
-        used = ref[ref["used"] == "refined"] if len(ref) else ref
         meta = {
-            "accepted_pairs": len(ref),
-            "refined": len(used),
-            "methods": MetadataValue.json(ref["method"].value_counts().to_dict() if len(ref) else {}),
-            "median_fit_bnb_mm": round(float(ref["fit_bnb_m"].median() * 1000), 3) if len(ref) else 0.0,
-            "median_fit_refined_mm": round(float(ref["fit_refined_m"].median() * 1000), 3) if len(ref) else 0.0,
-            "median_seconds": round(float(ref["seconds"].median()), 2) if len(ref) else 0.0,
-            # how far the used refinements moved the coarse pose, and how well the two directions agree
-            "median_moved_xy_mm": round(float(used["moved_xy_m"].median() * 1000), 2) if len(used) else 0.0,
-            "median_disagree_xy_mm": round(float(used["disagree_xy_m"].median() * 1000), 2) if len(used) else 0.0,
-            "not_used": MetadataValue.json({f"{r.scan}{r.reference}": r.reason for r in ref.itertuples()
-                                           if r.used != "refined"}),
+            "used": str(ref["used"].iloc[0]) if len(ref) else "not accepted",
+            "method": str(ref["method"].iloc[0]) if len(ref) else "",
+            "reason": str(ref["reason"].iloc[0]) if len(ref) else "",
         }
+        if len(ref) and ref["used"].iloc[0] == "refined":
+            # how far the refinement moved the coarse pose, and how well the two directions agree
+            meta["moved_xy_mm"] = round(float(ref["moved_xy_m"].iloc[0] * 1000), 2)
+            meta["disagree_xy_mm"] = round(float(ref["disagree_xy_m"].iloc[0] * 1000), 2)
+        if len(ref):
+            meta["fit_bnb_mm"] = round(float(ref["fit_bnb_m"].iloc[0] * 1000), 3)
+            meta["fit_refined_mm"] = round(float(ref["fit_refined_m"].iloc[0] * 1000), 3)
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
-    return [candidate_pairs, pairwise_registrations, refined_registrations]
+    out = [candidate_pairs, pair_inputs, pairwise_registrations, refined_registrations]
+    if not screen:
+        return out
+
+    @asset(
+        key=key("retry_pairs"),
+        ins={"candidate_pairs": AssetIn(key=key("candidate_pairs")),
+             "pairwise_registrations": AssetIn(key=key("pairwise_registrations"),
+                                               metadata={"allow_missing_partitions": True}),
+             "submaps": all_scans(key("submaps")),
+             "cylinder_segments": all_scans(key("cylinder_segments"))},
+        group_name="registration",
+        code_version=code_version(campaign, "retry_pairs"),
+        description="Pairs for the scans the candidate pairs left unplaced (inferred, issue 17): "
+        "every scan outside the largest group the accepted candidate pairs link is screened "
+        "against that group again and its registration.screen_keep best partners not yet "
+        "searched are added as pairs with the no-prior box.",
+    )
+    @timed
+    def retry_pairs(context, candidate_pairs, pairwise_registrations, submaps, cylinder_segments):
+        from forestmap_assets.core.registration.candidates import (
+            CANDIDATE_COLUMNS,
+            retry_candidates,
+        )
+        from forestmap_assets.core.registration.screening import stems_from_cylinders
+
+        reg = params.registration
+        regs = combine_pairs(pairwise_registrations).get("registrations", pd.DataFrame(columns=["scan", "reference", "status"]))
+        primary = set(zip(candidate_pairs["scan"], candidate_pairs["reference"], strict=True))
+        regs = regs[np.array([(a, b) in primary for a, b in zip(regs["scan"], regs["reference"], strict=True)], dtype=bool)]
+        submaps = submaps or {}
+        if len(submaps) > reg.screen_keep + 1:
+            extra = retry_candidates(
+                [s for s in campaign.scan_ids if s in submaps], candidate_pairs, regs,
+                {sid: stems_from_cylinders((cylinder_segments or {}).get(sid)) for sid in submaps},
+                keep=reg.screen_keep, search=(reg.xy_m, reg.z_m, reg.heading_deg),
+                reach={sid: submap_reach(df) for sid, df in submaps.items()}, max_xy_m=reg.max_xy_m)
+            extra["source"] = "retry"
+        else:
+            extra = pd.DataFrame(columns=list(CANDIDATE_COLUMNS))
+        if len(extra):
+            context.log.info(f"retrying {len(extra)} pairs of unplaced scans")
+        meta = {"pairs": len(extra), "table": md_table(extra)}
+        return Output(extra, metadata=meta, data_version=data_version(extra))
+
+    return [*out, retry_pairs]

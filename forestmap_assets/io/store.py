@@ -258,6 +258,23 @@ class ParquetIOManager(UPathIOManager):
     def path_exists(self, path: UPath) -> bool:
         return self._table_path(path).exists() or self._bundle_path(path).exists()
 
+    def read_stored(self, asset_path: list[str], partition: str | None = None) -> Any:
+        """The stored output of another asset (one partition of it), read outside Dagster's
+        input loading: a pair step reads its two scans' partitions this way (issue 17)."""
+        path = self._base_path.joinpath(*asset_path)
+        if partition is not None:
+            path = path / partition
+        return self.load_from_path(None, path)
+
+    def remove_stored(self, asset_path: list[str], partition: str) -> None:
+        """Delete one stored partition (a pair no longer searched, issue 17)."""
+        path = self._base_path.joinpath(*asset_path) / partition
+        table, bundle = self._table_path(path), self._bundle_path(path)
+        if table.exists():
+            table.unlink()
+        if bundle.exists():
+            _remove_tree(bundle)
+
     def load_partitions(self, context: InputContext):
         """Per-scan partitions read by a campaign-level asset are always ``{scan: output}``,
         also for a campaign of one scan (Dagster's default hands one partition over bare)."""

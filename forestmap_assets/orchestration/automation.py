@@ -51,7 +51,14 @@ from dagster import (
 )
 from dagster._core.definitions.data_version import DATA_VERSION_TAG, StaleStatus
 
-from forestmap_assets.assets.common import CAMPAIGN_STAGES, asset_key, job_name, scan_partitions
+from forestmap_assets.assets.common import (
+    CAMPAIGN_STAGES,
+    asset_key,
+    job_name,
+    pair_partitions,
+    scan_partitions,
+    screened,
+)
 from forestmap_assets.io.campaign import MANIFEST, Campaign, CampaignError, load_campaign
 
 PROCESS_JOB = "process_campaign"
@@ -193,7 +200,8 @@ def build_scan_files_sensor(loaded: list[Campaign], scan_jobs: list):
         default_status=DefaultSensorStatus.RUNNING if _running() else DefaultSensorStatus.STOPPED,
         description="New or changed scan files and new campaign folders under the data root: "
         "adds scan partitions and requests exactly the per-scan runs needed (one per new or "
-        "changed scan); a new or edited campaign gets one process_campaign run.",
+        "changed scan); keeps the pair partitions and requests one run per pair whose inputs "
+        "changed; a new or edited campaign gets one process_campaign run.",
     )
     def scan_files_sensor(context) -> SensorResult | SkipReason:
         state = json.loads(context.cursor) if context.cursor else {}
@@ -226,10 +234,11 @@ def build_scan_files_sensor(loaded: list[Campaign], scan_jobs: list):
                 context.log.info(f"{campaign.root}: new or edited campaign; requesting {PROCESS_JOB}")
                 runs.append(process_request(campaign, token))
                 continue
-            runs_, parts_, obs_ = _scan_requests(context.instance, graph, campaign, fps)
-            runs.extend(runs_)
-            partitions.extend(parts_)
-            observations.extend(obs_)
+            for runs_, parts_, obs_ in (_scan_requests(context.instance, graph, campaign, fps),
+                                        _pair_requests(context.instance, campaign)):
+                runs.extend(runs_)
+                partitions.extend(parts_)
+                observations.extend(obs_)
         cursor_text = json.dumps({"files": cursor.files, "handled": handled}, sort_keys=True)
         if not (runs or partitions or observations):
             return SensorResult(skip_reason=SkipReason("no new or changed scans"), cursor=cursor_text)
@@ -272,6 +281,34 @@ def _scan_requests(instance, graph, campaign: Campaign, fps: dict[str, str]):
     return runs, partitions, observations
 
 
+def _pair_requests(instance, campaign: Campaign):
+    """Pair partitions matched to the stored pair lists, observations of changed pair inputs and
+    one per-pair run for each (issue 17), as :func:`_scan_requests` does for scans."""
+    from forestmap_assets.assets.pairs import latest_data_version, pair_fingerprints
+    from forestmap_assets.orchestration.instance import wanted_pairs
+
+    parts = pair_partitions(campaign)
+    existing = set(instance.get_dynamic_partitions(parts.name))
+    rows = wanted_pairs(campaign)
+    partitions = []
+    new = sorted(set(rows["pair"]) - existing)
+    gone = sorted(existing - set(rows["pair"]))
+    if new:
+        partitions.append(parts.build_add_request(new))
+    if gone:
+        partitions.append(parts.build_delete_request(gone))
+    key = asset_key(campaign, "pair_inputs")
+    runs, observations = [], []
+    for pair, fp in pair_fingerprints(campaign, instance, rows).items():
+        if latest_data_version(instance, key, pair, source=True) != fp:
+            observations.append(AssetObservation(asset_key=key, partition=pair, tags={DATA_VERSION_TAG: fp}))
+            runs.append(RunRequest(
+                job_name=job_name(campaign, "pair"), partition_key=pair, run_key=f"{campaign.key}:{pair}:{fp}",
+                tags={CAMPAIGN_TAG: campaign.key, "forestmap/pair": pair},
+            ))
+    return runs, partitions, observations
+
+
 # --- the nightly schedule ----------------------------------------------------------------------
 
 
@@ -302,7 +339,8 @@ def nightly_reprocessing(context):
 def automation_definitions(campaigns: list[Campaign], scan_jobs: list) -> dict[str, list]:
     """Jobs, sensors and schedules of the workspace for the loaded ``campaigns`` (whose per-scan
     jobs are ``scan_jobs``)."""
-    level = AssetSelection.assets(*(asset_key(c, s) for c in campaigns for s in CAMPAIGN_STAGES))
+    level = AssetSelection.assets(*(asset_key(c, s) for c in campaigns for s in CAMPAIGN_STAGES
+                                    if s != "retry_pairs" or screened(c)))
     sensors = [build_scan_files_sensor(campaigns, scan_jobs)]
     if campaigns:
         sensors.append(AutomationConditionSensorDefinition(

@@ -4,12 +4,15 @@ manifest)."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from dagster import DagsterInstance
 
-from forestmap_assets.assets.common import scan_partitions
+from forestmap_assets.assets.common import PAIR_STAGES, asset_key, pair_partitions, scan_partitions
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.io.store import forestmap_home
 
@@ -50,3 +53,61 @@ def sync_partitions(instance: DagsterInstance, campaign: Campaign) -> None:
         instance.add_dynamic_partitions(name, new)
     for gone in existing - set(campaign.scan_ids):
         instance.delete_dynamic_partition(name, gone)
+
+
+def pair_store(store_url: str | None = None):
+    """The asset store's IO manager, to read and prune stored outputs outside a run."""
+    from upath import UPath
+
+    from forestmap_assets.io.store import ParquetIOManager, default_store_url
+
+    return ParquetIOManager(base_path=UPath(store_url or default_store_url()))
+
+
+def wanted_pairs(campaign: Campaign, store_url: str | None = None):
+    """The stored pair lists (``candidate_pairs`` then ``retry_pairs``) of the campaign's scans,
+    with their partition keys in column ``pair``."""
+    from forestmap_assets.assets.pairs import pair_rows
+
+    rows = pair_rows(pair_store(store_url), campaign)
+    ids = set(campaign.scan_ids)
+    keep = rows["scan"].isin(ids) & rows["reference"].isin(ids)
+    return rows[keep].reset_index(drop=True)
+
+
+def sync_pair_partitions(instance: DagsterInstance, campaign: Campaign, store_url: str | None = None) -> None:
+    """Make the campaign's dynamic pair partitions match its stored pair lists (issue 17); a pair
+    no longer listed loses its partition and its stored outputs."""
+    name = pair_partitions(campaign).name
+    existing = set(instance.get_dynamic_partitions(name))
+    wanted = set(wanted_pairs(campaign, store_url)["pair"])
+    new = sorted(wanted - existing)
+    if new:
+        instance.add_dynamic_partitions(name, new)
+    store = pair_store(store_url)
+    for gone in sorted(existing - wanted):
+        instance.delete_dynamic_partition(name, gone)
+        for stage in PAIR_STAGES:
+            store.remove_stored(list(asset_key(campaign, stage).path), gone)
+
+
+@contextlib.contextmanager
+def campaign_lock(
+    instance: DagsterInstance, campaign: Campaign, progress: Callable[[str], None]
+) -> Iterator[None]:
+    """Exclusive lock per campaign in the instance folder: a second ``forestmap run`` of the same
+    campaign waits for the first, then finds its work done."""
+    folder = Path(instance.root_directory) / "locks"
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / f"{campaign.key}.lock", "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            progress(
+                f"{campaign.name}: another run of this campaign is in progress; waiting for it"
+            )
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)

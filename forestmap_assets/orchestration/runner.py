@@ -2,23 +2,22 @@
 waves: it asks the stale-status resolver (:mod:`.status`) which partitions are missing or stale by
 their own cause, launches exactly those, and asks again (a re-run that reproduced the same content
 hash leaves its downstream fresh). Per-scan assets run as one Dagster run per scan partition (a
-corrupt scan fails only its own partitions), campaign-level assets after the scans in one run per
-wave. Every run is a real Dagster run in the persistent instance, launched with ``execute_job``
-machinery on a reconstructable job (:func:`campaign_job`) so that Dagster's multiprocess and Dask
-executors run the same code; a per-campaign lock in the instance folder makes a second run of one
-campaign wait, after which it finds everything fresh."""
+corrupt scan fails only its own partitions), then ``candidate_pairs``, then one run per pair
+partition (issue 17; the pair set kept equal to the stored pair lists), then the campaign-level
+assets that read the pairs. Every run is a real Dagster run in the persistent instance, launched
+with ``execute_job`` machinery on a reconstructable job (:func:`campaign_job`) so that Dagster's
+multiprocess and Dask executors run the same code; a per-campaign lock in the instance folder
+makes a second run of one campaign wait, after which it finds everything fresh."""
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import multiprocessing
 import os
-import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,17 +32,29 @@ from dagster._core.execution.api import (
 from dagster._core.storage.defs_state.base import set_defs_state_storage
 
 from forestmap_assets.assets.common import asset_key, job_name
+from forestmap_assets.assets.pairs import PAIR_LISTS
 from forestmap_assets.io.campaign import Campaign, load_campaign
 from forestmap_assets.io.store import default_store_url
 from forestmap_assets.orchestration.cluster import dask_cluster
-from forestmap_assets.orchestration.instance import get_instance, sync_partitions
+from forestmap_assets.orchestration.events import step_failure_reason
+from forestmap_assets.orchestration.instance import (
+    campaign_lock,
+    get_instance,
+    sync_pair_partitions,
+    sync_partitions,
+)
 from forestmap_assets.orchestration.namespace import claim_campaign_name
 from forestmap_assets.orchestration.status import (
     campaign_stages,
+    changed_pair_inputs,
     changed_scan_files,
+    count_attempts,
     direct_states,
     materialised_before,
+    observe_pair_inputs,
     observe_scan_files,
+    partition_work,
+    partitions_of,
     safe_subset,
     stage_parents,
 )
@@ -53,14 +64,9 @@ Progress = Callable[[str], None]
 
 
 CAMPAIGN_TAG = "forestmap/campaign"
-
-
 SCAN_TAG = "forestmap/scan"
-
-
+PAIR_TAG = "forestmap/pair"
 SESSION_TAG = "forestmap/session"
-
-
 QUIET = {"loggers": {"console": {"config": {"log_level": "CRITICAL"}}}}
 
 
@@ -91,36 +97,13 @@ class RunSummary:
         for those in ``kept_earlier``, with their results from an earlier run."""
         out: dict[str, str] = {}
         for stage, scan, reason in self.failures:
-            if scan is not None and scan not in out:
+            if scan in self.campaign.scan_ids and scan not in out:
                 out[scan] = reason if stage == "range_images" else f"{stage} failed: {reason}"
         return out
 
 
-@contextlib.contextmanager
-def campaign_lock(
-    instance: DagsterInstance, campaign: Campaign, progress: Progress
-) -> Iterator[None]:
-    """Exclusive lock per campaign in the instance folder: a second ``forestmap run`` of the same
-    campaign waits for the first, then finds its work done."""
-    folder = Path(instance.root_directory) / "locks"
-    folder.mkdir(parents=True, exist_ok=True)
-    with open(folder / f"{campaign.key}.lock", "a+") as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            progress(
-                f"{campaign.name}: another run of this campaign is in progress; waiting for it"
-            )
-            fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
-
-
 class _Session:
     """One ``run_campaign`` call: launches runs, follows their events, keeps the summary."""
-
     def __init__(
         self,
         campaign,
@@ -178,7 +161,7 @@ class _Session:
         """One Dagster run of the given stages (one scan partition, or campaign level)."""
         tags = {CAMPAIGN_TAG: self.campaign.key, SESSION_TAG: self.session}
         if partition is not None:
-            tags.update({"dagster/partition": partition, SCAN_TAG: partition})
+            tags.update({"dagster/partition": partition, (PAIR_TAG if kind == "pair" else SCAN_TAG): partition})
         if self.executor == "in_process" and self.defs is not None:
             # in this process: the job as already built (no reconstruction)
             job_arg, load_data = self.defs.resolve_job_def(job_name(self.campaign, kind)), None
@@ -216,7 +199,7 @@ class _Session:
                 seconds = event.event_specific_data.duration_ms / 1000.0
                 self.progress(f"  {where}{stage} ({seconds:.1f} s)")
             elif event.event_type == DagsterEventType.STEP_FAILURE and stage:
-                reason = _step_failure_reason(event)
+                reason = step_failure_reason(event)
                 failed_steps.add(stage)
                 self.failed.add((stage, partition))
                 self.summary.failures.append((stage, partition, reason))
@@ -253,12 +236,20 @@ class _Session:
                 self.progress(f"  {where}run FAILED: {run_failure or 'run failed'}")
         return ok
 
-    def run_scans(self, todo: dict[str, list[str]]) -> None:
-        """One run per scan: here one after another, or side by side in worker processes
-        (Dagster's run machinery is not thread-safe, so no threads)."""
+    def sync_pairs(self) -> None:
+        """Pair partitions matched to the stored pair lists, their inputs' fingerprints observed
+        (issue 17)."""
+        sync_pair_partitions(self.instance, self.campaign, self.store_url)
+        observe_pair_inputs(self.instance, self.campaign,
+                            changed_pair_inputs(self.campaign, self.instance, self.store_url))
+
+    def run_partitions(self, kind: str, todo: dict[str, list[str]]) -> None:
+        """One run per scan (``kind`` ``scan``) or pair (``pair``): here one after another, or
+        side by side in worker processes (Dagster's run machinery is not thread-safe, so no
+        threads)."""
         if self.executor == "in_process" or len(todo) == 1:
-            for sid, stages in todo.items():
-                self.execute("scan", stages, sid, 1)
+            for part, stages in todo.items():
+                self.execute(kind, stages, part, 1)
             return
         n = len(todo) if self.executor == "dask" else min(len(todo), self.workers)
         # forked workers start at once (this process has imported everything); they are all
@@ -280,7 +271,8 @@ class _Session:
                 max_workers=n, mp_context=ctx, initializer=_init_worker, initargs=(queue,)
             ) as pool:
                 futures = [
-                    pool.submit(_scan_worker, base, sid, stages, n) for sid, stages in todo.items()
+                    pool.submit(_partition_worker, base, kind, part, stages, n)
+                    for part, stages in todo.items()
                 ]
                 drain.start()
                 for fut in futures:
@@ -300,8 +292,16 @@ _QUEUE = None
 
 
 def _init_worker(queue) -> None:
+    """A forked worker starts its own forkserver for Dagster's multiprocess executor: the one it
+    inherits (started by an earlier campaign-level run) is its parent's child, not its own."""
+    import multiprocessing.forkserver as forkserver
+
     global _QUEUE
     _QUEUE = queue
+    server = forkserver._forkserver
+    server._forkserver_address = server._forkserver_alive_fd = server._forkserver_pid = None
+    server._inherited_fds = None
+    server._lock = threading.Lock()
 
 
 def _drain(queue, progress: Progress) -> None:
@@ -309,8 +309,8 @@ def _drain(queue, progress: Progress) -> None:
         progress(line)
 
 
-def _scan_worker(base: tuple, sid: str, stages: list[str], concurrent_runs: int):
-    """One scan's run in a worker process; returns what the parent session records."""
+def _partition_worker(base: tuple, kind: str, part: str, stages: list[str], concurrent_runs: int):
+    """One scan's or pair's run in a worker process; returns what the parent session records."""
     folder, ref, executor, store_url, workers, dask_address, session_id = base
     with DagsterInstance.from_ref(ref) as instance:
         session = _Session(
@@ -324,25 +324,9 @@ def _scan_worker(base: tuple, sid: str, stages: list[str], concurrent_runs: int)
             stages,
         )
         session.session = session_id
-        session.execute("scan", stages, sid, concurrent_runs)
+        session.execute(kind, stages, part, concurrent_runs)
         s = session.summary
         return s.ran, s.failures, s.check_failures, session.failed, s.run_ids
-
-
-def _step_failure_reason(event) -> str:
-    """One line: the user's ``Failure`` description, else the innermost error under Dagster's
-    wrappers (e.g. ``OSError: ...`` raised while storing an output)."""
-    data = event.step_failure_data
-    if data.user_failure_data and data.user_failure_data.description:
-        text = data.user_failure_data.description
-    else:
-        err = data.error
-        while err is not None and err.cls_name and err.cls_name.startswith("Dagster") and err.cause:
-            err = err.cause
-        text = err.message if err is not None else "failed"
-        if err is not None and os.environ.get("FORESTMAP_DEBUG"):
-            print("".join(err.stack), file=sys.stderr)
-    return (text or "failed").strip().splitlines()[0]
 
 
 def run_campaign(
@@ -414,7 +398,14 @@ def _run(
         stages_all = [(s, g) for s, g in stages_all if s in wanted]
     granularity = dict(stages_all)
     scan_stages = [s for s, g in stages_all if g == "scan"]
+    pair_stages = [s for s, g in stages_all if g == "pair"]
     level_stages = [s for s, g in stages_all if g == "campaign"]
+    # campaign-level stages that read a pair stage (directly or through another stage) wait
+    # while any pair is due; the others (candidate_pairs) run before the pairs
+    after_pairs: set[str] = set()
+    for stage, _ in stages_all:
+        if any(granularity.get(p) == "pair" or p in after_pairs for p in parents[stage]):
+            after_pairs.add(stage)
     with contextlib.ExitStack() as stack:
         stack.enter_context(campaign_lock(instance, campaign, progress))
         if not share_namespace:
@@ -435,33 +426,30 @@ def _run(
         summary = session.summary
         sync_partitions(instance, campaign)
         observe_scan_files(instance, campaign, changed_scan_files(campaign, instance, defs=defs))
-        attempted: set[tuple[str, str | None]] = set()
+        attempts: dict[tuple[str, str | None], int] = {}
         first = True
         while True:
+            if pair_stages:
+                session.sync_pairs()
+            pairs_now = partitions_of(instance, campaign, "pair")
             states = direct_states(defs, campaign, instance, check_files=False)
+            # a stage that ran and is still not fresh gets one more chance (a stage that reads
+            # its own downstream's partitions, retry_pairs, settles on the second run)
             due = {
                 k
                 for k, v in states.items()
-                if v != "fresh" and k not in attempted and k[0] in granularity
+                if v != "fresh" and attempts.get(k, 0) < 2 and k[0] in granularity
             }
             # never retry what failed, nor what reads something that failed in this session
             blocked = set(session.failed)
             for stage, g in stages_all:
-                for part in campaign.scan_ids if g == "scan" else [None]:
+                for part in campaign.scan_ids if g == "scan" else pairs_now if g == "pair" else [None]:
                     if any(
                         (p, part) in blocked for p in parents.get(stage, []) if granularity[p] == g
                     ):
                         blocked.add((stage, part))
             due -= blocked
-            scans: dict[str, list[str]] = {}
-            for sid in campaign.scan_ids:
-                wanted = {s for s in scan_stages if (s, sid) in due}
-                chosen = safe_subset(
-                    wanted,
-                    {s: [p for p in parents[s] if granularity[p] == "scan"] for s in scan_stages},
-                )
-                if chosen:
-                    scans[sid] = [s for s in scan_stages if s in chosen]
+            scans = partition_work(campaign.scan_ids, scan_stages, due, parents, granularity)
             if first:
                 fresh = sum(1 for sid in campaign.scan_ids if sid not in scans)
                 progress(
@@ -470,17 +458,29 @@ def _run(
                 )
                 first = False
             if scans:
-                attempted |= {(s, sid) for sid, stages in scans.items() for s in stages}
-                session.run_scans(scans)
+                count_attempts(attempts, scans)
+                session.run_partitions("scan", scans)
                 continue
+            pairs = partition_work(pairs_now, pair_stages, due, parents, granularity)
             level = safe_subset(
                 {s for s in level_stages if (s, None) in due},
                 {s: [p for p in parents[s] if granularity[p] == "campaign"] for s in level_stages},
             )
+            lists = [s for s in PAIR_LISTS if s in level]
+            if lists:  # a pair list runs alone with what does not read pairs: its pairs come next
+                level = (level - after_pairs) | {lists[0]}
+            if pairs:  # the pair lists first, then the pairs, then what reads them
+                level -= after_pairs
+                if not level:
+                    progress(f"  {len(pairs)} pairs to register")
+                    count_attempts(attempts, pairs)
+                    session.run_partitions("pair", pairs)
+                    continue
             if not level:
                 break
             stages = [s for s in level_stages if s in level]
-            attempted |= {(s, None) for s in stages}
+            for s in stages:
+                attempts[(s, None)] = attempts.get((s, None), 0) + 1
             progress(f"  campaign: {', '.join(stages)}")
             session.execute("campaign", stages, None, 1)
     for stage, scan, _ in summary.failures:

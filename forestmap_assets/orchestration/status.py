@@ -18,7 +18,8 @@ from dagster._core.definitions.data_version import (
 )
 from dagster._time import get_current_datetime
 
-from forestmap_assets.assets.common import PIPELINE, asset_key
+from forestmap_assets.assets.common import PIPELINE, asset_key, pair_partitions, split_pair_key
+from forestmap_assets.assets.pairs import PAIR_LISTS, PAIR_SCAN_INPUTS
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.orchestration.workspace import build_definitions
 
@@ -31,14 +32,39 @@ class StageState:
     state: str  # missing | stale | fresh
     per_partition: dict[str, str] = field(default_factory=dict)
 
+    def counts(self) -> str:
+        """``12 pairs: 10 fresh, 2 missing`` for a partitioned stage, else ``""``."""
+        if self.granularity == "campaign":
+            return ""
+        values = list(self.per_partition.values())
+        parts = [f"{values.count(s)} {s}" for s in ("fresh", "stale", "missing") if values.count(s)]
+        return f"{len(values)} {self.granularity}s" + (": " + ", ".join(parts) if parts else "")
+
+
+def partitions_of(instance: DagsterInstance, campaign: Campaign, granularity: str) -> list[str | None]:
+    """The partitions a stage of this granularity has now: the scans of the manifest, the pairs
+    of the pair partition set (kept by the runner, issue 17), or ``[None]``."""
+    if granularity == "scan":
+        return list(campaign.scan_ids)
+    if granularity == "pair":
+        return sorted(instance.get_dynamic_partitions(pair_partitions(campaign).name))
+    return [None]
+
 
 def campaign_stages(defs: Definitions, campaign: Campaign) -> list[tuple[str, str]]:
     """Every materialisable asset of the campaign as (stage, ``scan`` | ``campaign``): the
     stages of DESIGN.md section 5 in that order, then any further stage in graph order."""
     graph = defs.resolve_asset_graph()
     order = {s: i for i, (s, _) in enumerate(PIPELINE)}
+    pairs = pair_partitions(campaign).name
+
+    def granularity(node) -> str:
+        if not node.is_partitioned:
+            return "campaign"
+        return "pair" if getattr(node.partitions_def, "name", None) == pairs else "scan"
+
     found = [
-        (k.path[-1], "scan" if graph.get(k).is_partitioned else "campaign")
+        (k.path[-1], granularity(graph.get(k)))
         for k in graph.toposorted_asset_keys
         if len(k.path) == 2 and k.path[0] == campaign.key and graph.get(k).is_materializable
     ]
@@ -88,6 +114,30 @@ def changed_scan_files(
     return out
 
 
+def changed_pair_inputs(campaign: Campaign, instance: DagsterInstance, store_url: str | None = None) -> dict[str, str]:
+    """Pairs of the partition set whose inputs' fingerprint (:func:`.pairs.pair_fingerprints`)
+    differs from the last observed ``pair_inputs`` version: ``{pair: new fingerprint}``."""
+    from forestmap_assets.assets.pairs import latest_data_version, pair_fingerprints
+    from forestmap_assets.orchestration.instance import wanted_pairs
+
+    current = set(instance.get_dynamic_partitions(pair_partitions(campaign).name))
+    rows = wanted_pairs(campaign, store_url)
+    rows = rows[rows["pair"].isin(current)]
+    key = asset_key(campaign, "pair_inputs")
+    return {k: fp for k, fp in pair_fingerprints(campaign, instance, rows).items()
+            if latest_data_version(instance, key, k, source=True) != fp}
+
+
+def observe_pair_inputs(instance: DagsterInstance, campaign: Campaign, changed: dict[str, str]) -> None:
+    """Record new pair fingerprints (runless observations of ``pair_inputs``): exactly those
+    pairs' registrations become stale."""
+    key = asset_key(campaign, "pair_inputs")
+    for pair, fp in changed.items():
+        instance.report_runless_asset_event(
+            AssetObservation(asset_key=key, partition=pair, tags={DATA_VERSION_TAG: fp})
+        )
+
+
 def observe_scan_files(
     instance: DagsterInstance, campaign: Campaign, changed: dict[str, str]
 ) -> None:
@@ -101,7 +151,8 @@ def observe_scan_files(
 
 
 def direct_states(
-    defs: Definitions, campaign: Campaign, instance: DagsterInstance, check_files: bool = True
+    defs: Definitions, campaign: Campaign, instance: DagsterInstance, check_files: bool = True,
+    store_url: str | None = None,
 ) -> dict[tuple[str, str | None], str]:
     """Dagster's own status of every (stage, scan) and (stage, None): ``missing``, ``stale``
     (a cause of its own: new code version, or an input with a new data version) or ``fresh``;
@@ -110,22 +161,54 @@ def direct_states(
     stages = campaign_stages(defs, campaign)
     resolver.instance_queryer.prefetch_asset_records([asset_key(campaign, s) for s, _ in stages])
     out: dict[tuple[str, str | None], str] = {}
+    parts = {g: partitions_of(instance, campaign, g) for g in ("scan", "pair", "campaign")}
     for stage, granularity in stages:
         key = asset_key(campaign, stage)
-        for part in campaign.scan_ids if granularity == "scan" else [None]:
+        for part in parts[granularity]:
             status = resolver.get_status(key, part)
             out[(stage, part)] = {StaleStatus.MISSING: "missing", StaleStatus.STALE: "stale"}.get(
                 status, "fresh"
             )
+    _many_pairs(defs, campaign, instance, stages, parts["pair"], out)
     changed = changed_scan_files(campaign, instance, resolver) if check_files else {}
     for sid in changed:  # a changed file not yet observed: its range image is stale
         if out.get(("range_images", sid)) == "fresh":
             out[("range_images", sid)] = "stale"
+    if check_files and parts["pair"]:  # a pair whose inputs changed since they were observed
+        for pair in changed_pair_inputs(campaign, instance, store_url):
+            for stage, g in stages:
+                if g == "pair" and out.get((stage, pair)) == "fresh":
+                    out[(stage, pair)] = "stale"
     return out
 
 
+def _many_pairs(defs, campaign, instance, stages, pairs, out) -> None:
+    """Dagster does not compare data versions across 100 or more upstream partitions
+    (``SKIP_PARTITION_DATA_VERSION_DEPENDENCY_THRESHOLD``): then a campaign-level stage that
+    reads a pair stage is stale when any pair was materialised after it."""
+    from dagster._core.definitions.data_version import (
+        SKIP_PARTITION_DATA_VERSION_DEPENDENCY_THRESHOLD,
+    )
+
+    if len(pairs) < SKIP_PARTITION_DATA_VERSION_DEPENDENCY_THRESHOLD:
+        return
+    granularity = dict(stages)
+    parents = stage_parents(defs, campaign)
+
+    def newest(stage: str) -> int:
+        records = instance.fetch_materializations(
+            AssetRecordsFilter(asset_key=asset_key(campaign, stage)), limit=1).records
+        return int(records[0].storage_id) if records else 0
+
+    for stage, g in stages:
+        if g == "campaign" and out.get((stage, None)) == "fresh":
+            pair_parents = [p for p in parents[stage] if granularity.get(p) == "pair"]
+            if pair_parents and max(newest(p) for p in pair_parents) > newest(stage):
+                out[(stage, None)] = "stale"
+
+
 def stage_states(
-    defs: Definitions, campaign: Campaign, instance: DagsterInstance
+    defs: Definitions, campaign: Campaign, instance: DagsterInstance, store_url: str | None = None
 ) -> list[StageState]:
     """State of every pipeline stage as ``forestmap status`` prints it (DESIGN.md section 3).
 
@@ -133,29 +216,37 @@ def stage_states(
     missing or stale (so the effect of a parameter change shows all the way down); a per-scan
     asset is ``missing`` if any scan's partition is, else ``stale`` if any is.
     """
-    direct = direct_states(defs, campaign, instance)
+    direct = direct_states(defs, campaign, instance, store_url=store_url)
     parents = stage_parents(defs, campaign)
     stages = campaign_stages(defs, campaign)
     granularity = dict(stages)
+    parts = {g: partitions_of(instance, campaign, g) for g in ("scan", "pair", "campaign")}
+
+    def read_by(p: str, g: str, part: str | None) -> list[str | None]:
+        """The partitions of stage ``p`` that partition ``part`` of a ``g`` stage reads."""
+        if granularity[p] == g:
+            return [part]
+        if g == "pair" and granularity[p] == "scan":
+            return list(split_pair_key(part, campaign.scan_ids))
+        return parts[granularity[p]]
+
+    # a pair step also reads its two scans' stored outputs and the pair lists (.pairs)
+    # (not retry_pairs: it lies downstream of the pairs it reads)
+    pair_reads = [s for s in (*PAIR_SCAN_INPUTS, PAIR_LISTS[0]) if s in granularity]
     effective: dict[tuple[str, str | None], str] = {}
     for stage, g in stages:
-        for part in campaign.scan_ids if g == "scan" else [None]:
+        for part in parts[g]:
             state = direct[(stage, part)]
             if state == "fresh":
-                upstream = [
-                    effective[(p, q)]
-                    for p in parents[stage]
-                    for q in (
-                        [part] if granularity[p] == g or part is not None else campaign.scan_ids
-                    )
-                ]
+                reads = parents[stage] + (pair_reads if g == "pair" else [])
+                upstream = [effective[(p, q)] for p in reads for q in read_by(p, g, part)]
                 state = "stale" if any(u != "fresh" for u in upstream) else "fresh"
             effective[(stage, part)] = state
     out = []
     for stage, g in stages:
-        if g == "scan":
-            per = {sid: effective[(stage, sid)] for sid in campaign.scan_ids}
-            values = set(per.values())
+        if g != "campaign":
+            per = {q: effective[(stage, q)] for q in parts[g]}
+            values = set(per.values()) or {"missing"}
             state = "missing" if "missing" in values else "stale" if "stale" in values else "fresh"
             out.append(StageState(stage, g, True, state, per))
         else:
@@ -205,3 +296,21 @@ def latest_materialization_id(instance: DagsterInstance, campaign: Campaign) -> 
         if records:
             newest = max(newest, int(records[0].storage_id))
     return newest
+
+
+def partition_work(parts, stages, due, parents, granularity) -> dict[str, list[str]]:
+    """``{partition: stages}`` due now for the scans or pairs ``parts``: per partition the due
+    stages that may run together (:func:`safe_subset` within the granularity)."""
+    out: dict[str, list[str]] = {}
+    same = {s: [p for p in parents[s] if granularity[p] == granularity[s]] for s in stages}
+    for part in parts:
+        chosen = safe_subset({s for s in stages if (s, part) in due}, same)
+        if chosen:
+            out[part] = [s for s in stages if s in chosen]
+    return out
+
+
+def count_attempts(attempts: dict, todo: dict[str, list[str]]) -> None:
+    for part, stages in todo.items():
+        for s in stages:
+            attempts[(s, part)] = attempts.get((s, part), 0) + 1

@@ -110,7 +110,7 @@ def build_definitions(
         own = campaign_assets(campaign)
         assets.extend(own)
         jobs.extend(campaign_jobs(campaign, own))
-    scan_jobs = jobs[0::2]
+    scan_jobs = [j for j in jobs if j.name.endswith("__scan_assets")]
     sensors: list = []
     schedules: list = []
     if extras is not None:

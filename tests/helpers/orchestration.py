@@ -126,25 +126,36 @@ def campaign(root: Path) -> Campaign:
 def data_versions(defs, root: Path) -> dict[tuple[str, str | None], str]:
     """Current data version of every (stage, partition) of the campaign."""
     from forestmap_assets.orchestration.instance import get_instance
-    from forestmap_assets.orchestration.status import _resolver, campaign_stages
+    from forestmap_assets.orchestration.status import _resolver, campaign_stages, partitions_of
 
     c = load_campaign(root)
-    resolver = _resolver(defs, get_instance())
+    instance = get_instance()
+    resolver = _resolver(defs, instance)
     return {
         (stage, part): resolver.get_current_data_version(asset_key(c, stage), part).value
         for stage, g in campaign_stages(defs, c)
-        for part in (c.scan_ids if g == "scan" else [None])
+        for part in partitions_of(instance, c, g)
     }
 
 
 def inputs_of(defs, root: Path, stage: str, part: str | None) -> list[tuple[str, str | None]]:
     """The (stage, partition) inputs of one asset partition."""
-    from forestmap_assets.orchestration.status import campaign_stages, stage_parents
+    from forestmap_assets.assets.common import split_pair_key
+    from forestmap_assets.assets.pairs import PAIR_LISTS, PAIR_SCAN_INPUTS
+    from forestmap_assets.orchestration.instance import get_instance
+    from forestmap_assets.orchestration.status import campaign_stages, partitions_of, stage_parents
 
     c = load_campaign(root)
     granularity = dict(campaign_stages(defs, c))
-    return [
-        (p, q)
-        for p in stage_parents(defs, c)[stage]
-        for q in ([part] if granularity[p] == "scan" and part is not None else c.scan_ids if granularity[p] == "scan" else [None])
-    ]
+    parents = list(stage_parents(defs, c)[stage])
+    if granularity[stage] == "pair":  # a pair step also reads its scans' outputs and its row
+        parents += [s for s in (*PAIR_SCAN_INPUTS, *PAIR_LISTS) if s in granularity]
+
+    def parts(p: str) -> list[str | None]:
+        if granularity[p] == granularity[stage]:
+            return [part]
+        if granularity[stage] == "pair" and granularity[p] == "scan":
+            return list(split_pair_key(part, c.scan_ids))
+        return partitions_of(get_instance(), c, granularity[p])
+
+    return [(p, q) for p in parents for q in parts(p)]

@@ -19,12 +19,13 @@ from helpers.orchestration import (
     write_manifest,
 )
 
-from forestmap_assets.assets.common import CAMPAIGN_STAGES, PIPELINE, SCAN_STAGES
+from forestmap_assets.assets.common import CAMPAIGN_STAGES, PAIR_STAGES, PIPELINE, SCAN_STAGES
 from forestmap_assets.orchestration.instance import get_instance
 from forestmap_assets.orchestration.runner import run_campaign
 from forestmap_assets.orchestration.workspace import build_definitions
 
-ALL = [s for s, _ in PIPELINE]
+ALL = [s for s, _ in PIPELINE if s != "retry_pairs"]  # the template's pairs are a priori: no retries
+LEVEL = [s for s in CAMPAIGN_STAGES if s != "retry_pairs"]
 
 
 def _run(root):
@@ -79,7 +80,7 @@ def test_unchanged_output_does_not_make_downstream_stale(tmp_path, monkeypatch, 
     states = status_lines(root, capsys)
     assert states["line_segments"] == "stale"
     assert all(states[s] == "fresh" for s in ("range_images", "segments", "circle_models", "cylinder_segments", "elevation_maps"))
-    assert all(states[s] == "stale" for s in ("submaps", *CAMPAIGN_STAGES))  # until it has run
+    assert all(states[s] == "stale" for s in ("submaps", *LEVEL, *PAIR_STAGES))  # until it has run
 
     assert _run(root) == {("line_segments", "T"), ("line_segments", "S")}
     assert status_lines(root, capsys) == {s: "fresh" for s in ALL}
@@ -93,11 +94,15 @@ def test_adding_a_scan_runs_its_own_per_scan_assets_and_the_campaign_level_only(
     write_manifest(root, full)
     states = status_lines(root, capsys)
     assert all(states[s] == "missing" for s in SCAN_STAGES)  # R's partitions are missing
-    assert all(states[s] == "stale" for s in CAMPAIGN_STAGES)
+    assert all(states[s] == "stale" for s in LEVEL)
 
     ran = _run(root)
-    per_scan = {(s, p) for s, p in ran if p is not None}
+    per_scan = {(s, p) for s, p in ran if p in {"T", "S", "R"}}
     assert per_scan == {(s, "R") for s in SCAN_STAGES}
+    # issue 17: only the pairs that involve the new scan are registered; T-S is not redone
+    pairs = {(s, p) for s, p in ran if p is not None and p not in {"T", "S", "R"}}
+    new = {f"{p['scan']}__{p['reference']}" for p in full["pairs"] if "R" in (p["scan"], p["reference"])}
+    assert new and pairs == {(s, k) for s in PAIR_STAGES for k in new}
     level = {s for s, p in ran if p is None}
-    assert {"candidate_pairs", "pairwise_registrations", "refined_registrations", "optimal_map"} <= level <= set(CAMPAIGN_STAGES)
+    assert {"candidate_pairs", "optimal_map"} <= level <= set(LEVEL)
     assert status_lines(root, capsys) == {s: "fresh" for s in ALL}

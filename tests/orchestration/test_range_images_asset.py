@@ -51,7 +51,9 @@ def test_range_images_materialise_level_and_cache(tmp_path, _isolated_home):
     np.savez(root / "scans" / "T.npz", **data)
     rerun = run_campaign(root, progress=lambda m: None).ran
     assert ("range_images", "T") in rerun
-    assert {scan for _, scan in rerun if scan is not None} == {"T"}  # no other scan's work
+    parts = {part for _, part in rerun if part is not None}
+    assert parts & set(campaign.scan_ids) == {"T"}  # no other scan's work
+    assert all("T" in part.split("__") for part in parts - {"T"})  # and only the pairs with T
 
 
 @pytest.mark.slow

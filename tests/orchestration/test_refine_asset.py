@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from dagster import materialize
 
-from forestmap_assets.assets.common import asset_key, code_version
+from forestmap_assets.assets.common import asset_key, code_version, pair_partitions
 from forestmap_assets.core.geometry import wrap_deg
 from forestmap_assets.core.registration.pair_registrations import (
     EXTRA_COLUMNS,
@@ -24,15 +24,14 @@ from forestmap_assets.sim import simulate_campaign
 
 
 def _registrations(truth: pd.DataFrame, offset) -> dict[str, pd.DataFrame]:
-    """A branch-and-bound bundle: S located in T's frame, off the truth by ``offset``."""
+    """A branch-and-bound bundle of pair S__T: S located in T's frame, off the truth by ``offset``."""
     t, s = truth.set_index("scan").loc["T"], truth.set_index("scan").loc["S"]
     assert np.allclose([t.x, t.y, t.z, t.heading_deg], 0.0)
     row = dict.fromkeys(REGISTRATION_COLUMNS + EXTRA_COLUMNS, np.nan)
     row.update(scan="S", reference="T", dx=s.x + offset[0], dy=s.y + offset[1], dz=s.z + offset[2],
                dheading_deg=float(wrap_deg(s.heading_deg + offset[3])), sd_x=0.02, sd_y=0.02, sd_z=0.1,
                sd_heading_deg=0.12, status="accepted", reason="", seconds=1.0, n_points=100)
-    rejected = dict(row, scan="T", reference="S", status="rejected", reason="ambiguous")
-    regs = pd.DataFrame([row, rejected], columns=REGISTRATION_COLUMNS + EXTRA_COLUMNS)
+    regs = pd.DataFrame([row], columns=REGISTRATION_COLUMNS + EXTRA_COLUMNS)
     return {"registrations": regs, "levels": pd.DataFrame({"scan": ["S"]}),
             "hypotheses": pd.DataFrame({"scan": ["S"]})}
 
@@ -58,8 +57,12 @@ def test_refined_registrations_asset_uses_hicp_on_colour_scans(tmp_path, _isolat
     store = default_store_url()
     from upath import UPath
 
-    write_bundle_atomic(_registrations(truth, offset), UPath(store) / campaign.key / "pairwise_registrations.bundle")
-    res = materialize(assets, instance=instance, resources=defs.resources, selection=[key], run_config=QUIET)
+    # the pair partition S__T (issue 17) with a branch-and-bound result in the store
+    instance.add_dynamic_partitions(pair_partitions(campaign).name, ["S__T"])
+    write_bundle_atomic(_registrations(truth, offset),
+                        UPath(store) / campaign.key / "pairwise_registrations" / "S__T.bundle")
+    res = materialize(assets, instance=instance, resources=defs.resources, selection=[key], partition_key="S__T",
+                      run_config=QUIET)
     assert res.success
     out = res.output_for_node(key.to_python_identifier())
     ref, regs = out["refinements"], out["registrations"]
@@ -72,9 +75,6 @@ def test_refined_registrations_asset_uses_hicp_on_colour_scans(tmp_path, _isolat
     assert np.linalg.norm(err) < 0.25 * np.linalg.norm(offset[:3])  # much closer than the B&B pose
     assert abs(wrap_deg(acc["dheading_deg"] - s.heading_deg)) < 0.05
     assert 0 < acc["sd_x"] < 0.02  # its own, smaller uncertainty
-    # the rejected row is passed through untouched
-    rej = regs[regs["status"] == "rejected"].iloc[0]
-    assert not bool(rej["refined"]) and rej["dx"] == s.x + offset[0]
     meta = res.asset_materializations_for_node(key.to_python_identifier())[0].metadata
-    assert meta["refined"].value == 1 and meta["accepted_pairs"].value == 1
-    assert code_version(campaign, "refined_registrations").startswith("v2-")
+    assert meta["used"].value == "refined" and meta["method"].value == "hicp"
+    assert code_version(campaign, "refined_registrations").startswith("v3-")
