@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 
+from forestmap_assets.access import load_asset
 from forestmap_assets.assets.registration import _cloud
 from forestmap_assets.core.geometry import relative_pose
 from forestmap_assets.core.registration.refine import POSE, SD, refine_registrations
@@ -37,7 +38,8 @@ def cases_from_runs(runs: Path) -> list[tuple[str, Path, Path]]:
     out = []
     for case in sorted(runs.glob("*/case.json")):
         root = Path(json.loads(case.read_text())["root"])
-        stores = sorted((case.parent / "fm-home" / "store").glob("*/pairwise_registrations.bundle"))
+        # a campaign-level bundle (before issue 17) or a folder of pair partitions
+        stores = sorted((case.parent / "fm-home" / "store").glob("*/pairwise_registrations*"))
         if stores and (root / "truth" / "poses.csv").exists():
             out.append((case.parent.name, stores[0].parent, root / "truth" / "poses.csv"))
     return out
@@ -51,7 +53,7 @@ def relative_truth(truth: pd.DataFrame, scan: str, ref: str) -> np.ndarray:
 
 def run_case(label: str, store: Path, truth_csv: Path) -> list[dict]:
     truth = pd.read_csv(truth_csv).set_index("scan")
-    regs = pq.read_table(store / "pairwise_registrations.bundle" / "registrations.parquet").to_pandas()
+    regs = load_asset("pairwise_registrations", campaign=store.name, store_url=str(store.parent))["registrations"]
     acc = regs[regs["status"] == "accepted"]
     ids = sorted(set(acc["scan"]) | set(acc["reference"]))
     clouds = {sid: _cloud(pq.read_table(store / "range_images" / f"{sid}.parquet")) for sid in ids}

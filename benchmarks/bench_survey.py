@@ -373,7 +373,8 @@ def forestmap_exe() -> Path:
 # ----------------------------------------------------------------------------- the two runs
 
 STEP = re.compile(r"^  (?:\[(?P<scan>[^\]]+)\] )?(?P<stage>[a-z_]+) \((?P<s>\d+(?:\.\d+)?) s\)$")
-PAIR = re.compile(r"^  pairs \d+/\d+: (?P<pair>\S+) (?P<s>\d+(?:\.\d+)?) s")
+# one pair partition's search (issue 17): "  [S__T] pairwise_registrations (2.9 s)"
+PAIR = re.compile(r"^  \[(?P<pair>\S+__\S+)\] pairwise_registrations \((?P<s>\d+(?:\.\d+)?) s\)$")
 
 
 def stage_breakdown(lines: list[tuple[float, str]], wall: float,

@@ -34,6 +34,7 @@ CODE_VERSIONS: dict[str, str] = {
     "line_segments": "1",
     "elevation_maps": "1",
     "submaps": "1",
+    "refine_clouds": "1",
     "candidate_pairs": "2",
     "pairwise_registrations": "3",
     "refined_registrations": "3",
@@ -53,6 +54,7 @@ STAGE_PARAMS: dict[str, tuple[str, ...]] = {
     "line_segments": ("lines",),
     "elevation_maps": ("elevation",),
     "submaps": ("submaps",),
+    "refine_clouds": ("refine",),
     "candidate_pairs": ("registration",),
     "pairwise_registrations": ("registration", "elevation"),
     "refined_registrations": ("refine",),
@@ -72,6 +74,7 @@ PIPELINE: tuple[tuple[str, str], ...] = (
     ("line_segments", "scan"),
     ("elevation_maps", "scan"),
     ("submaps", "scan"),
+    ("refine_clouds", "scan"),  # issue 16/17: each scan prepared once for the pairs' refinement
     ("candidate_pairs", "campaign"),
     ("pairwise_registrations", "pair"),
     ("refined_registrations", "pair"),  # Men 2012 ch. 5: fine registration on raw points

@@ -21,7 +21,7 @@ from forestmap_assets.assets.common import asset_key, pair_key, split_pair_key
 from forestmap_assets.io.campaign import Campaign
 
 # The per-scan outputs a pair step reads, for each of its two scans.
-PAIR_SCAN_INPUTS: tuple[str, ...] = ("submaps", "elevation_maps", "range_images")
+PAIR_SCAN_INPUTS: tuple[str, ...] = ("submaps", "elevation_maps", "range_images", "refine_clouds")
 
 # The campaign-level tables that list pairs and their search boxes.
 PAIR_LISTS: tuple[str, ...] = ("candidate_pairs", "retry_pairs")

@@ -26,6 +26,7 @@ from forestmap_assets.assets.common import (
     data_version,
     md_table,
     pair_partitions,
+    scan_partitions,
     screened,
     timed,
 )
@@ -199,6 +200,27 @@ def registration_assets(campaign: Campaign) -> list:
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
     @asset(
+        key=key("refine_clouds"),
+        partitions_def=scan_partitions(campaign),
+        ins={"range_images": AssetIn(key=key("range_images"))},
+        group_name="registration",
+        code_version=code_version(campaign, "refine_clouds"),
+        description="One scan prepared once for the fine registration of all its pairs (issues "
+        "16, 17): the levelled points cropped to the refinement's range and height band, the data "
+        "points (voxel refine.data_voxel_m, at most refine.max_data_points) and the model points "
+        "(voxel refine.two_way_model_voxel_m) with normals oriented to the sensor (spec 3.3).",
+    )
+    @timed
+    def refine_clouds(context, range_images):
+        from forestmap_assets.core.registration.two_way import RefineCloud
+
+        xyz, hue = _cloud(range_images)
+        table = RefineCloud.from_points(xyz, refine_settings(campaign)).to_table(colour=hue is not None)
+        meta = {"data_points": int((table["role"] == "data").sum()),
+                "model_points": int((table["role"] == "model").sum()), "colour": hue is not None}
+        return Output(table, metadata=meta, data_version=data_version(table))
+
+    @asset(
         key=key("refined_registrations"),
         partitions_def=pairs,
         ins={"pairwise_registrations": AssetIn(key=key("pairwise_registrations"))},
@@ -218,14 +240,24 @@ def registration_assets(campaign: Campaign) -> list:
         settings = refine_settings(campaign)
         regs = pairwise_registrations["registrations"]
         io = context.resources.io_manager
-        clouds = {}
+        clouds, prepared = {}, {}
         if (regs["status"] == "accepted").any():
-            for sid in scans_of(campaign, context.partition_key):
-                table = read_stored(io, campaign, "range_images", sid)
-                if table is not None:
-                    clouds[sid] = _cloud(table)
+            from forestmap_assets.core.registration.refine import resolved_method
+            from forestmap_assets.core.registration.two_way import RefineCloud
+
+            ids = scans_of(campaign, context.partition_key)
+            tables = {sid: t for sid in ids if (t := read_stored(io, campaign, "refine_clouds", sid)) is not None}
+            colour = len(tables) == 2 and all(bool(t["colour"].iloc[0]) for t in tables.values() if len(t))
+            if len(tables) == 2 and settings.guard == "fit" and resolved_method(settings, colour) == "point_to_plane":
+                prepared = {sid: RefineCloud.from_table(t) for sid, t in tables.items()}
+                clouds = {sid: (None, None) for sid in tables}  # the prepared clouds are enough
+            else:  # HICP on colour, or the box guard: the raw points
+                for sid in ids:
+                    table = read_stored(io, campaign, "range_images", sid)
+                    if table is not None:
+                        clouds[sid] = _cloud(table)
         progress = lambda m: (context.log.info(m), report(f"[{context.partition_key}] {m}"))  # noqa: E731
-        bundle = refine_registrations(regs, clouds, settings, progress=progress)
+        bundle = refine_registrations(regs, clouds, settings, progress=progress, prepared=prepared)
         ref = bundle["refinements"]
         meta = {
             "used": str(ref["used"].iloc[0]) if len(ref) else "not accepted",
@@ -241,7 +273,7 @@ def registration_assets(campaign: Campaign) -> list:
             meta["fit_refined_mm"] = round(float(ref["fit_refined_m"].iloc[0] * 1000), 3)
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
-    out = [candidate_pairs, pair_inputs, pairwise_registrations, refined_registrations]
+    out = [candidate_pairs, pair_inputs, pairwise_registrations, refine_clouds, refined_registrations]
     if not screen:
         return out
 

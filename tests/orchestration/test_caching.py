@@ -50,7 +50,7 @@ def test_parameter_change_reruns_that_stage_and_only_what_its_output_changes(tmp
     defs0 = build_definitions([campaign(root)])
     before = data_versions(defs0, root)
     upstream = {"range_images", "segments", "circle_models", "line_segments", "elevation_maps",
-                "occlusion_boundaries"}
+                "occlusion_boundaries", "refine_clouds"}
     downstream = set(ALL) - upstream - {"cylinder_segments"}
     edit_manifest(root, params={"cylinders": {"min_length_m": 3.0}})  # drops the shorter cylinders
     states = status_lines(root, capsys)
@@ -79,7 +79,8 @@ def test_unchanged_output_does_not_make_downstream_stale(tmp_path, monkeypatch, 
     edit_manifest(root, params={"lines": {"min_length_m": 2.5}})
     states = status_lines(root, capsys)
     assert states["line_segments"] == "stale"
-    assert all(states[s] == "fresh" for s in ("range_images", "segments", "circle_models", "cylinder_segments", "elevation_maps"))
+    assert all(states[s] == "fresh" for s in ("range_images", "segments", "circle_models", "cylinder_segments",
+                                              "elevation_maps", "refine_clouds"))
     assert all(states[s] == "stale" for s in ("submaps", *LEVEL, *PAIR_STAGES))  # until it has run
 
     assert _run(root) == {("line_segments", "T"), ("line_segments", "S")}

@@ -133,7 +133,7 @@ def refine_pair(
     row.update({f"bnb_{k}": v for k, v in zip(SD, sd, strict=True)})
     row.update(used="branch_and_bound", reason="", converged=False, at_box_edge=False, iterations=0)
     colour = scan_hue is not None and ref_hue is not None
-    method = _resolved_method(s, colour)
+    method = resolved_method(s, colour)
     row["method"] = method
     if method == "none":
         row["reason"] = "refinement switched off"
@@ -268,7 +268,7 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
     return row
 
 
-def _resolved_method(s: RefineSettings, colour: bool) -> str:
+def resolved_method(s: RefineSettings, colour: bool) -> str:
     method = s.method if s.method != "auto" else ("hicp" if colour else "point_to_plane")
     return "point_to_plane" if method == "hicp" and not colour else method
 
@@ -278,16 +278,19 @@ def refine_registrations(
     clouds: dict[str, tuple[np.ndarray, np.ndarray | None]],
     settings: RefineSettings | None = None,
     progress: Callable[[str], None] | None = None,
+    prepared: dict[str, RefineCloud] | None = None,
 ) -> dict[str, pd.DataFrame]:
     """Refine every accepted registration; ``clouds`` maps a scan id to (levelled points,
-    hue or None). Returns ``registrations`` (the input table, accepted rows with the refined pose
+    hue or None); ``prepared``: scans' :class:`RefineCloud` made beforehand (the per-scan
+    ``refine_clouds`` asset), used by the two-way point-to-plane refinement instead of
+    ``clouds`` (a scan there needs no entry in ``clouds``: ``(None, None)`` for no colour). Returns ``registrations`` (the input table, accepted rows with the refined pose
     and sigmas where they are used, plus ``refined`` and ``refine_method`` columns) and
     ``refinements`` (one :data:`REFINE_COLUMNS` row per accepted pair)."""
     s = settings or RefineSettings()
     regs = registrations.copy()
     rows = []
     accepted = regs.index[regs["status"] == "accepted"] if len(regs) else []
-    prepared: dict[str, RefineCloud] = {}  # per scan, shared by all its pairs
+    prepared = dict(prepared or {})  # per scan, shared by all its pairs
 
     def prepared_cloud(sid: str) -> RefineCloud:
         if sid not in prepared:
@@ -300,7 +303,7 @@ def refine_registrations(
         if scan is None or ref is None:
             row = dict.fromkeys(REFINE_COLUMNS, np.nan)
             row.update(used="branch_and_bound", reason="range image missing", method=s.method)
-        elif s.guard == "fit" and _resolved_method(s, scan[1] is not None and ref[1] is not None) == "point_to_plane":
+        elif s.guard == "fit" and resolved_method(s, scan[1] is not None and ref[1] is not None) == "point_to_plane":
             row = refine_pair_two_way(prepared_cloud(r["scan"]), prepared_cloud(r["reference"]),
                                       r[POSE].to_numpy(float), r[SD].to_numpy(float), s)
         else:

@@ -33,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.cloud import voxel_subsample
@@ -63,6 +64,24 @@ class RefineCloud:
         if s.max_data_points and len(data) > s.max_data_points:  # a fixed, seeded thinning
             data = data[np.sort(np.random.default_rng(0).choice(len(data), s.max_data_points, replace=False))]
         return cls(data=data, model=model, normals=sensor_normals(model, s.normal_k), tree=cKDTree(model))
+
+    def to_table(self, colour: bool = False) -> pd.DataFrame:
+        """One row per point: ``x, y, z`` (and ``nx, ny, nz`` for the model), ``role`` ``data``
+        or ``model``; ``colour``: whether the scan has colour (the pair's method depends on it)."""
+        n = np.full((len(self.data), 3), np.nan)
+        xyz = np.vstack([self.data, self.model])
+        normals = np.vstack([n, self.normals])
+        return pd.DataFrame({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "nx": normals[:, 0],
+                             "ny": normals[:, 1], "nz": normals[:, 2],
+                             "role": np.repeat(["data", "model"], [len(self.data), len(self.model)]),
+                             "colour": bool(colour)})
+
+    @classmethod
+    def from_table(cls, table: pd.DataFrame) -> RefineCloud:
+        model = table["role"].to_numpy() == "model"
+        xyz = table[["x", "y", "z"]].to_numpy(np.float64)
+        return cls(data=xyz[~model], model=xyz[model], normals=table.loc[model, ["nx", "ny", "nz"]].to_numpy(np.float64),
+                   tree=cKDTree(xyz[model]))
 
 
 def crop_mask(points: np.ndarray, s: RefineSettings) -> np.ndarray:
