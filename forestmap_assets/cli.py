@@ -73,7 +73,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, default=None)
     r.add_argument("--executor", choices=["in_process", "multiprocess", "dask"], default="in_process")
     r.add_argument("--workers", type=int, default=None,
-                   help="processes for multiprocess / the local Dask cluster (default: CPU count)")
+                   help="worker processes for the scans' and pairs' runs, or of the local Dask cluster "
+                   "(default: CPU count; 1 with in_process: one run after another in this process)")
     r.add_argument("--dask-address", default=None,
                    help="Dask scheduler (default: $FORESTMAP_DASK_ADDRESS, else a local cluster)")
     r.add_argument("--cloud-spacing", type=float, default=0.05, metavar="M",

@@ -75,7 +75,8 @@ def test_failed_run_leaves_no_partial_parquet(tmp_path, monkeypatch):
         raise OSError("disk full (simulated)")
 
     monkeypatch.setattr(store.pq, "write_table", half_then_fail)
-    summary = run_campaign(root, stages=["range_images"], progress=lambda m: None)
+    # workers=1: the runs in this process, where the writer is patched
+    summary = run_campaign(root, stages=["range_images"], workers=1, progress=lambda m: None)
     assert sorted((s, p) for s, p, _ in summary.failures) == [("range_images", "S"), ("range_images", "T")]
     assert all("disk full" in reason for *_, reason in summary.failures)
     images = Path(os.environ["FORESTMAP_HOME"]) / "store" / "test_campaign" / "range_images"
