@@ -153,6 +153,7 @@ def _run(
             [s for s, _ in stages_all],
             defs,
         )
+        stack.callback(session.close)
         summary = session.summary
         sync_partitions(instance, campaign)
         observe_scan_files(instance, campaign, changed_scan_files(campaign, instance, defs=defs))

@@ -102,6 +102,8 @@ class Session:
         self.summary = RunSummary(campaign)
         self.failed: set[tuple[str, str | None]] = set()
         self._stage_of_step = {f"{campaign.key}__{s}": s for s in stage_names}
+        self._pool: ProcessPoolExecutor | None = None
+        self._closers: list = []
 
     def recon(self, kind: str):
         return build_reconstructable_job(
@@ -225,19 +227,47 @@ class Session:
             for part, stages in todo.items():
                 self.execute(kind, stages, part, 1)
             return
-        n = len(todo) if self.executor == "dask" else min(len(todo), self.workers)
-        threads = 0
         if self.executor == "in_process":
-            # runs in workers started from a fork server that has only imported forestmap (this
-            # process may have used OpenMP, which a fork must not inherit); the cores shared out
+            self._collect(self._in_process_pool(), kind, todo, self.workers)
+            return
+        n = len(todo) if self.executor == "dask" else min(len(todo), self.workers)
+        # forked workers start at once (this process has imported everything); they are all
+        # forked at the first submit, before this process starts any thread of its own
+        ctx = multiprocessing.get_context("fork")
+        queue = ctx.Queue()
+        drain = threading.Thread(target=_drain, args=(queue, self.progress), daemon=True)
+        try:
+            with ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker,
+                                     initargs=(queue, 0, dict(os.environ))) as pool:
+                self._collect(pool, kind, todo, n, start=drain.start)
+        finally:
+            queue.put(None)
+            if drain.is_alive():
+                drain.join(timeout=5)
+
+    def _in_process_pool(self) -> ProcessPoolExecutor:
+        """The session's workers for in_process runs, kept for all its waves: started from a fork
+        server that has only imported forestmap (this process may have used OpenMP, which a fork
+        must not inherit), the cores shared out among them."""
+        if self._pool is None:
             ctx = multiprocessing.get_context("forkserver")
             ctx.set_forkserver_preload(["forestmap_assets.orchestration.session"])
-            threads = max(1, (os.cpu_count() or 1) // n)
-        else:
-            # forked workers start at once (this process has imported everything); they are all
-            # forked at the first submit, before this process starts any thread of its own
-            ctx = multiprocessing.get_context("fork")
-        queue = ctx.Queue()
+            queue = ctx.Queue()
+            threads = max(1, (os.cpu_count() or 1) // self.workers)
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
+                                             initargs=(queue, threads, dict(os.environ)))
+            drain = threading.Thread(target=_drain, args=(queue, self.progress), daemon=True)
+            drain.start()
+            self._closers = [self._pool.shutdown, lambda: queue.put(None), lambda: drain.join(timeout=5)]
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the session's workers (if any)."""
+        for close in self._closers:
+            close()
+        self._pool, self._closers = None, []
+
+    def _collect(self, pool, kind: str, todo: dict[str, list[str]], n: int, start=None) -> None:
         base = (
             str(self.campaign.root),
             self.instance.get_ref(),
@@ -247,28 +277,16 @@ class Session:
             self.dask_address,
             self.session,
         )
-        drain = threading.Thread(target=_drain, args=(queue, self.progress), daemon=True)
-        try:
-            with ProcessPoolExecutor(
-                max_workers=n, mp_context=ctx, initializer=_init_worker,
-                initargs=(queue, threads, dict(os.environ)),
-            ) as pool:
-                futures = [
-                    pool.submit(_partition_worker, base, kind, part, stages, n)
-                    for part, stages in todo.items()
-                ]
-                drain.start()
-                for fut in futures:
-                    ran, failures, checks, failed, run_ids = fut.result()
-                    self.summary.ran.extend(ran)
-                    self.summary.failures.extend(failures)
-                    self.summary.check_failures.extend(checks)
-                    self.summary.run_ids.extend(run_ids)
-                    self.failed |= failed
-        finally:
-            queue.put(None)
-            if drain.is_alive():
-                drain.join(timeout=5)
+        futures = [pool.submit(_partition_worker, base, kind, part, stages, n) for part, stages in todo.items()]
+        if start is not None:
+            start()
+        for fut in futures:
+            ran, failures, checks, failed, run_ids = fut.result()
+            self.summary.ran.extend(ran)
+            self.summary.failures.extend(failures)
+            self.summary.check_failures.extend(checks)
+            self.summary.run_ids.extend(run_ids)
+            self.failed |= failed
 
 
 _QUEUE = None
