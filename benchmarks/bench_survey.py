@@ -84,10 +84,11 @@ def run_measured(cmd: list[str], log: Path, env: dict | None = None, echo: bool 
     load0 = os.getloadavg()[0]
     lines: list[tuple[float, str]] = []
     rss: list[tuple[float, int]] = []
+    cpu: dict[int, tuple[float, float]] = {}
     t0 = time.perf_counter()
     with open(log, "w") as fh, subprocess.Popen(full, stdout=subprocess.PIPE,
                                                 stderr=subprocess.STDOUT, text=True, env=env) as p:
-        sampler = threading.Thread(target=sample_rss, args=(p, t0, rss), daemon=True)
+        sampler = threading.Thread(target=sample_rss, args=(p, t0, rss, 0.5, cpu), daemon=True)
         sampler.start()
         fh.write("# " + " ".join(map(str, cmd)) + "\n")
         for raw in p.stdout:
@@ -101,16 +102,23 @@ def run_measured(cmd: list[str], log: Path, env: dict | None = None, echo: bool 
         "rc": p.returncode, "wall_s": time.perf_counter() - t0, "user_s": math.nan,
         "sys_s": math.nan, "maxrss_kib": math.nan}
     sampler.join(timeout=5)
+    # worker processes of a fork server are not the wrapper's waited-for descendants: their CPU
+    # time as last sampled (under by at most one sampling interval each)
+    sampled = [sum(v) for v in zip(*cpu.values(), strict=True)] if cpu else [0.0, 0.0]
+    if sampled[0] + sampled[1] > usage.get("user_s", 0.0) + usage.get("sys_s", 0.0):
+        usage["user_s"], usage["sys_s"] = sampled
     usage.update(load_before=load0, load_after=os.getloadavg()[0], lines=lines, rss=rss)
     with open(log.with_suffix(".rss.csv"), "w") as fh:
         fh.write("t_s,rss_bytes\n" + "".join(f"{t:.2f},{b}\n" for t, b in rss))
     return usage
 
 
-def sample_rss(proc: subprocess.Popen, t0: float, out: list, every_s: float = 0.5) -> None:
+def sample_rss(proc: subprocess.Popen, t0: float, out: list, every_s: float = 0.5,
+               cpu: dict | None = None) -> None:
     """Memory of the whole process tree under ``proc`` every ``every_s`` seconds: the sum of
     each process's proportional set size (PSS: shared pages split, so forked workers are not
-    counted twice; RSS where PSS is unreadable). psutil; nothing without it."""
+    counted twice; RSS where PSS is unreadable); ``cpu``: each process's last seen (user,
+    system) seconds. psutil; nothing without it."""
     try:
         import psutil
     except ImportError:
@@ -124,6 +132,9 @@ def sample_rss(proc: subprocess.Popen, t0: float, out: list, every_s: float = 0.
         try:
             for q in [root, *root.children(recursive=True)]:
                 try:
+                    if cpu is not None:
+                        t = q.cpu_times()
+                        cpu[q.pid] = (t.user, t.system)
                     total += q.memory_full_info().pss
                 except (psutil.Error, AttributeError):
                     try:
