@@ -78,6 +78,7 @@ class RunSummary:
 
 class Session:
     """One ``run_campaign`` call: launches runs, follows their events, keeps the summary."""
+
     def __init__(
         self,
         campaign,

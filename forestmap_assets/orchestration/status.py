@@ -213,8 +213,9 @@ def stage_states(
     """State of every pipeline stage as ``forestmap status`` prints it (DESIGN.md section 3).
 
     A partition is ``stale`` if Dagster reports a cause of its own or if anything it reads is
-    missing or stale (so the effect of a parameter change shows all the way down); a per-scan
-    asset is ``missing`` if any scan's partition is, else ``stale`` if any is.
+    missing or stale (so the effect of a parameter change shows all the way down; a pair also
+    reads its two scans' outputs and ``candidate_pairs``); a per-scan or per-pair asset is
+    ``missing`` if any of its partitions is, else ``stale`` if any is.
     """
     direct = direct_states(defs, campaign, instance, store_url=store_url)
     parents = stage_parents(defs, campaign)
