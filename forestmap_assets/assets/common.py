@@ -156,7 +156,7 @@ def manifest_digest(campaign: Campaign, entries: tuple[str, ...]) -> str:
 
 
 # The stages from Men (2012) version their settings (dataclasses of params.men), not sections
-MEN_CODE_VERSIONS = {"occlusion_boundaries": "1", "next_vantage_points": "1"}
+MEN_CODE_VERSIONS = {"occlusion_boundaries": "1", "next_vantage_points": "2"}
 
 
 def occlusion_config(campaign: Campaign) -> OcclusionConfig:
@@ -231,6 +231,13 @@ def data_version(obj: Any) -> DataVersion:
     else:
         feed(obj)
     return DataVersion(h.hexdigest()[:24])
+
+
+def picture_metadata(picture) -> MetadataValue:
+    """A :class:`~forestmap_assets.outputs.figures.common.Picture` as inline Markdown for the
+    Dagster UI: its caption, then the image."""
+    data = base64.b64encode(picture.png).decode()
+    return MetadataValue.md(f"{picture.caption}\n\n![image](data:image/png;base64,{data})")
 
 
 def png_metadata(fig) -> MetadataValue:

@@ -17,13 +17,14 @@ from forestmap_assets.assets.common import (
     data_version,
     exploration_config,
     occlusion_config,
-    png_metadata,
+    picture_metadata,
     scan_partitions,
     stage_version,
     timed,
 )
 from forestmap_assets.io.campaign import Campaign
-from forestmap_assets.outputs.figures.range_images import range_mask_figure
+from forestmap_assets.outputs.figures.common import Picture, png_bytes
+from forestmap_assets.outputs.figures.range_pictures import range_mask_picture
 
 
 def exploration_assets(campaign: Campaign) -> list:
@@ -64,8 +65,8 @@ def exploration_assets(campaign: Campaign) -> list:
             "tilt_threshold": round(float(info["median_tilt_threshold"]), 5),
             "pan_threshold": round(float(info["median_pan_threshold"]), 5),
             "surface_voxels": len(bundle["surface"]),
-            "occlusion_boundaries": png_metadata(
-                range_mask_figure(image, mask, f"occlusion boundaries, scan {context.partition_key}",
+            "occlusion_boundaries": picture_metadata(
+                range_mask_picture(image, mask, f"occlusion boundaries, scan {context.partition_key}",
                                   label="occlusion boundaries")
             ),
         }
@@ -101,14 +102,17 @@ def exploration_assets(campaign: Campaign) -> list:
         plan, elevation, stems = plan_from_map(surfaces, integrated_map, tree_list, exp_cfg)
         bundle = plan_tables(plan)
         props = bundle["proposals"]
+        title = f"{campaign.name}: next vantage positions"
         best = props.iloc[0] if len(props) else None
         fig = exploration_figure(
             plan,
             elevation,
             stems,
             integrated_map["scans"],
-            title=f"{campaign.name}: next vantage positions",
+            title=title,
         )
+        picture = Picture(png_bytes(fig, dpi=100), title)
+        bundle["picture"] = pd.DataFrame({"png": [picture.png]})  # for the report
         show = props.head(exp_cfg.n_proposals)[
             [
                 "rank",
@@ -140,7 +144,7 @@ def exploration_assets(campaign: Campaign) -> list:
                 }
             ),
             "proposals": MetadataValue.md(_md(show)),
-            "picture": png_metadata(fig),
+            "picture": picture_metadata(picture),
         }
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 

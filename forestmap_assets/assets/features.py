@@ -14,7 +14,7 @@ from forestmap_assets.assets.common import (
     cylinder_check_specs,
     cylinder_checks,
     data_version,
-    png_metadata,
+    picture_metadata,
     scan_check_thresholds,
     scan_partitions,
     timed,
@@ -24,8 +24,8 @@ from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.figures.range_images import (
     circle_mask,
     cylinder_outlines,
-    range_mask_figure,
 )
+from forestmap_assets.outputs.figures.range_pictures import range_mask_picture
 
 
 def _image(table) -> RangeImage:
@@ -71,8 +71,8 @@ def feature_assets(campaign: Campaign) -> list:
             "segments": len(table),
             "chains": int(table["chain_id"].nunique()) if len(table) else 0,
             "inlier_points": int(table["n_inliers"].sum()) if len(table) else 0,
-            "segment_mask": png_metadata(
-                range_mask_figure(image, segment_mask(image, table), f"segments, scan {context.partition_key}",
+            "segment_mask": picture_metadata(
+                range_mask_picture(image, segment_mask(image, table), f"segments, scan {context.partition_key}",
                                   label="segments")
             ),
         }
@@ -106,8 +106,8 @@ def feature_assets(campaign: Campaign) -> list:
                 rejected_by=MetadataValue.json(_counts(last.loc[~last["valid"], "reject_reason"])),
                 rejected_share=round(float((~last["valid"]).mean()), 4),
             )
-            meta["circle_mask"] = png_metadata(  # each row's mark as wide as its circle (Fig. 4.15c)
-                range_mask_figure(image, circle_mask(image, last), f"valid circles, scan {context.partition_key}",
+            meta["circle_mask"] = picture_metadata(  # each row's mark as wide as its circle (Fig. 4.15c)
+                range_mask_picture(image, circle_mask(image, last), f"valid circles, scan {context.partition_key}",
                                   label="valid circle models")
             )
         else:
@@ -135,8 +135,8 @@ def feature_assets(campaign: Campaign) -> list:
             "median_radius_m": round(float(table["radius_m"].median()), 4) if len(table) else 0.0,
         }
         image = _image(range_images)  # JP Fig. 7d: the cylinders over the range image
-        meta["cylinders_picture"] = png_metadata(
-            range_mask_figure(image, None, f"cylinder segments, scan {context.partition_key}",
+        meta["cylinders_picture"] = picture_metadata(
+            range_mask_picture(image, None, f"cylinder segments, scan {context.partition_key}",
                               outlines=cylinder_outlines(image, table))
         )
         yield Output(table, metadata=meta, data_version=data_version(table))

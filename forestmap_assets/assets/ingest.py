@@ -17,14 +17,14 @@ from forestmap_assets.assets.common import (
     asset_key,
     code_version,
     data_version,
-    png_metadata,
+    picture_metadata,
     scan_partitions,
     timed,
 )
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.io.projection import fill_ratio
-from forestmap_assets.outputs.figures.range_images import range_mask_figure
+from forestmap_assets.outputs.figures.range_pictures import range_mask_picture
 
 
 def read_campaign_scan(campaign: Campaign, scan_id: str) -> RangeImage:
@@ -99,7 +99,7 @@ def ingest_assets(campaign: Campaign) -> list:
             "max_range_m": float(np.max(finite)) if valid else 0.0,
             "has_rgb": image.rgb is not None,
             "tilt_deg": MetadataValue.json(list(image.tilt_deg)),
-            "range_image": png_metadata(range_mask_figure(image, None, f"range image, scan {sid}")),
+            "range_image": picture_metadata(range_mask_picture(image, None, f"range image, scan {sid}")),
         }
         return Output(table, metadata=meta, data_version=data_version(table))
 

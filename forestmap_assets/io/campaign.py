@@ -16,6 +16,7 @@ from typing import Any
 
 import yaml
 
+from forestmap_assets.io.home import file_digest
 from forestmap_assets.io.scan_poses import PoseError, e57_poses, parse_pose
 from forestmap_assets.params import Params, ParamsError, resolve_params
 
@@ -117,10 +118,7 @@ class Campaign:
     def scan_fingerprint(self, scan_id: str) -> str:
         """Content hash of a scan file plus its tilt (a Dagster data version for the input)."""
         entry = self.scan(scan_id)
-        h = hashlib.sha256()
-        with open(entry.path, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
+        h = hashlib.sha256(file_digest(entry.path).encode())
         key: tuple = (entry.tilt_deg, self.angular_step_deg)
         if entry.pose is not None or entry.e57_scan is not None:
             key += (entry.pose, entry.e57_scan)

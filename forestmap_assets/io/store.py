@@ -23,12 +23,7 @@ import pyarrow.parquet as pq
 from dagster import ConfigurableIOManagerFactory, InputContext, OutputContext, UPathIOManager
 from upath import UPath
 
-DEFAULT_HOME = "~/.forestmap"
-
-
-def forestmap_home() -> Path:
-    """The project's home folder: ``$FORESTMAP_HOME`` or ``~/.forestmap``."""
-    return Path(os.environ.get("FORESTMAP_HOME", DEFAULT_HOME)).expanduser()
+from forestmap_assets.io.home import forestmap_home
 
 
 def default_store_url() -> str:
@@ -49,6 +44,15 @@ MANIFEST = "_tables.json"  # bundle folder: its table names, written last
 
 def _tmp_sibling(path: UPath) -> UPath:
     return path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:12]}")
+
+
+def _being_swapped(path: UPath) -> bool:
+    """Whether a writer is between moving ``path`` aside and moving its new version in: a
+    temporary sibling of it exists (:func:`_tmp_sibling`)."""
+    parent = path.parent
+    if not parent.exists():
+        return False
+    return any(p.name.startswith(f".{path.name}.tmp-") for p in parent.iterdir())
 
 
 def _move(src: UPath, dst: UPath) -> None:
@@ -250,7 +254,7 @@ class ParquetIOManager(UPathIOManager):
         for k in range(5):  # a concurrent writer swaps a bundle folder in (see _swap_in)
             if bundle_path.exists():
                 return read_bundle(bundle_path)
-            if not table_path.parent.exists():
+            if not _being_swapped(bundle_path):
                 break
             time.sleep(0.02 * (k + 1))
         raise FileNotFoundError(f"no stored output at {table_path} (has the asset been materialised?)")

@@ -111,3 +111,51 @@ def campaign_lock(
             yield
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def settled_key(instance: DagsterInstance, campaign: Campaign, defs, store_url: str) -> str:
+    """What a campaign's state depends on: the newest event of the instance, the code version of
+    every stage (stage version plus parameter hash), the scan files' fingerprints and the store.
+    Unchanged since a session that left every stage fresh means nothing to do (issue 16: a run
+    with nothing to do asks Dagster's stale-status resolver nothing)."""
+    import hashlib
+    import json
+
+    graph = defs.resolve_asset_graph()
+    versions = sorted(
+        (k.to_user_string(), graph.get(k).code_version or "")
+        for k in graph.get_all_asset_keys()
+        if len(k.path) == 2 and k.path[0] == campaign.key
+    )
+    doc = {
+        "event": instance.event_log_storage.get_maximum_record_id(),
+        "versions": versions,
+        "files": {sid: campaign.scan_fingerprint(sid) for sid in campaign.scan_ids},
+        "store": store_url,
+    }
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()[:24]
+
+
+def _settled_path(instance: DagsterInstance, campaign: Campaign) -> Path:
+    return Path(instance.root_directory) / "settled" / f"{campaign.key}.txt"
+
+
+def is_settled(instance: DagsterInstance, campaign: Campaign, key: str) -> bool:
+    """Whether the last session of the campaign ended with every stage fresh, and nothing that
+    :func:`settled_key` covers changed since."""
+    try:
+        return _settled_path(instance, campaign).read_text().strip() == key
+    except OSError:
+        return False
+
+
+def mark_settled(instance: DagsterInstance, campaign: Campaign, key: str | None) -> None:
+    """Record (``key``) or forget (``None``) that every stage of the campaign is fresh."""
+    path = _settled_path(instance, campaign)
+    if key is None:
+        path.unlink(missing_ok=True)
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(key)
+    os.replace(tmp, path)

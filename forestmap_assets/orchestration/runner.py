@@ -27,6 +27,9 @@ from forestmap_assets.orchestration.cluster import dask_cluster
 from forestmap_assets.orchestration.instance import (
     campaign_lock,
     get_instance,
+    is_settled,
+    mark_settled,
+    settled_key,
     sync_partitions,
 )
 from forestmap_assets.orchestration.namespace import claim_campaign_name
@@ -157,6 +160,12 @@ def _run(
         summary = session.summary
         sync_partitions(instance, campaign)
         observe_scan_files(instance, campaign, changed_scan_files(campaign, instance, defs=defs))
+        settle = stages is None  # a whole session may record that it left everything fresh
+        if settle and is_settled(instance, campaign, settled_key(instance, campaign, defs, store_url)):
+            n = len(campaign.scan_ids)
+            progress(f"{campaign.name}: {n} scans, 0 to process, {n} up to date" + campaign.prior_note)
+            summary.seconds = time.perf_counter() - start
+            return summary
         attempts: dict[tuple[str, str | None], int] = {}
         first = True
         while True:
@@ -197,9 +206,11 @@ def _run(
                 {s for s in level_stages if (s, None) in due},
                 {s: [p for p in parents[s] if granularity[p] == "campaign"] for s in level_stages},
             )
-            lists = [s for s in PAIR_LISTS if s in level]
-            if lists:  # a pair list runs alone with what does not read pairs: its pairs come next
-                level = (level - after_pairs) | {lists[0]}
+            # candidate_pairs runs with what does not read pairs: its pairs come next. retry_pairs
+            # runs with the stages after it: it usually lists nothing, and when it lists pairs,
+            # they run and the stages after them run again
+            if PAIR_LISTS[0] in level:
+                level = (level - after_pairs) | {PAIR_LISTS[0]}
             if pairs:  # the pair lists first, then the pairs, then what reads them
                 level -= after_pairs
                 if not level:
@@ -208,6 +219,10 @@ def _run(
                     session.run_partitions("pair", pairs)
                     continue
             if not level:
+                if settle and not session.failed and all(
+                    v == "fresh" for k, v in states.items() if k[0] in granularity
+                ):
+                    mark_settled(instance, campaign, settled_key(instance, campaign, defs, store_url))
                 break
             stages = [s for s in level_stages if s in level]
             for s in stages:

@@ -14,11 +14,9 @@ instance); the registrations table adds each pair's search time.
 from __future__ import annotations
 
 import base64
-import contextlib
 import html
 import json
 import os
-import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -372,13 +370,8 @@ def build_report(
         add(_card(f"{cov['median_points_per_m2']:.0f}", "median points per m²"))
         add(_card(int(props["feasible"].sum()) if len(props) else 0, "feasible positions"))
         add("</div><div class='row'><div>")
-        with contextlib.suppress(Exception):  # the picture is a convenience, never a failure
-            from forestmap_assets.outputs.figures.exploration_map import write_next_vantage_png
-
-            with tempfile.TemporaryDirectory() as tmp:
-                png = Path(tmp) / "next_vantage.png"
-                write_next_vantage_png(campaign, png)
-                add(_img(png.read_bytes(), "next vantage positions"))
+        if "picture" in vantage and len(vantage["picture"]):  # drawn by next_vantage_points
+            add(_img(bytes(vantage["picture"]["png"].iloc[0]), "next vantage positions"))
         add("</div><div>")
         cols = ["rank", "x", "y", "expected_new_m2", "common_stems", "reference_scan", "path_m", "feasible"]
         add(html_table(props[[c for c in cols if c in props]].head(10),

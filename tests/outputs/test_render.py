@@ -20,8 +20,8 @@ from forestmap_assets.outputs.figures.range_images import (
     circle_mask,
     cylinder_outlines,
     range_image_panels,
-    range_mask_figure,
 )
+from forestmap_assets.outputs.figures.range_pictures import NO_RETURN_RGB, range_mask_picture
 from forestmap_assets.outputs.figures.registration import (
     cloud_weights,
     score_cloud_evolution,
@@ -250,11 +250,27 @@ def test_elevation_figure_labels_its_colour_scale_and_crops_to_the_plot():
     assert png_bytes(fig)[:4] == b"\x89PNG"
 
 
-def test_range_mask_figure_for_the_dagster_ui():
+def test_range_mask_picture_for_the_dagster_ui():
+    import io
+
+    from PIL import Image
+
     image = wall_image()
+    image.range_m[30:, :] = np.nan  # no return in the lowest rows
     mask = np.zeros(image.shape, bool)
     mask[5:9, 100:110] = True
-    fig = range_mask_figure(image, mask, "segments, scan T", label="segments")
-    assert fig.axes[0].get_title() == "segments, scan T (red: segments, 40 pixels)"
-    assert fig.axes[0].get_xlabel() == "azimuth (deg)"
-    assert png_bytes(fig, dpi=80)[:4] == b"\x89PNG"
+    pic = range_mask_picture(image, mask, "segments, scan T", label="segments", max_width=900)
+    assert pic.caption.startswith("segments, scan T (red: segments, 40 pixels)")
+    assert "azimuth" in pic.caption and "no return" in pic.caption
+    px = np.asarray(Image.open(io.BytesIO(pic.png)).convert("RGB"))
+    assert px.shape == (40, 360, 3)
+    assert tuple(px[6, 105]) != tuple(px[6, 200]) and px[6, 105, 0] > 180 > px[6, 105, 1]
+    assert tuple(px[35, 10]) == NO_RETURN_RGB
+    # a wide image is shrunk in blocks: a one-pixel mark survives, outlines are drawn
+    small = range_mask_picture(image, mask[:, ::-1], "x", max_width=100,
+                               outlines=[np.array([[-50.0, 5.0], [50.0, 5.0], [50.0, 0.0]])])
+    px = np.asarray(Image.open(io.BytesIO(small.png)).convert("RGB"))
+    assert px.shape == (10, 90, 3) and "4 x 4" in small.caption and "orange: 1" in small.caption
+    assert (px[..., 0] > 180).sum() > 0
+
+

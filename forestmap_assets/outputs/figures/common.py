@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -36,6 +37,14 @@ NO_VALUE = "#a0a0a0"
 
 
 ELEVATION_CMAP = "YlGn_r"  # lighter = higher (thesis Fig. 6.11); the same scale as map.png
+
+
+@dataclass(frozen=True)
+class Picture:
+    """A finished PNG and the caption that says what it shows (Dagster UI metadata)."""
+
+    png: bytes
+    caption: str
 
 
 def new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:

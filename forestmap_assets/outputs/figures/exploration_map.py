@@ -10,11 +10,7 @@ import pandas as pd
 
 from forestmap_assets.core.exploration.candidates import VantagePlan
 from forestmap_assets.core.exploration.frontier import OBSTACLE, UNMAPPED
-from forestmap_assets.core.exploration.mapped_plan import plan_from_map
 from forestmap_assets.core.features.elevation import ElevationGrid
-from forestmap_assets.io.campaign import Campaign
-from forestmap_assets.io.writers import atomic_write
-from forestmap_assets.params.men import ExplorationConfig
 
 
 # ---- picture ---------------------------------------------------------------------------------
@@ -154,36 +150,3 @@ def exploration_figure(
     ax.legend(loc="upper right", fontsize=7, markerscale=1.0)
     fig.tight_layout()
     return fig
-
-
-def write_next_vantage_png(campaign: Campaign, path, *, store_url: str | None = None):
-    """``next_vantage.png`` of a materialised campaign (for the exports and the report): the plan
-    recomputed from the stored occlusion boundaries, integrated map and tree list."""
-    from forestmap_assets.access import load_asset
-
-    integrated = load_asset("integrated_map", campaign=campaign, store_url=store_url)
-    trees = load_asset("tree_list", campaign=campaign, store_url=store_url)
-    surfaces = {}
-    for sid in integrated["scans"]["scan"].astype(str):
-        try:
-            surfaces[sid] = load_asset(
-                "occlusion_boundaries", campaign=campaign, scan=sid, store_url=store_url
-            )
-        except FileNotFoundError:
-            continue
-    plan, elevation, stems = plan_from_map(
-        surfaces,
-        integrated,
-        trees,
-        ExplorationConfig.from_params(getattr(campaign.params, "exploration", None)),
-    )
-    fig = exploration_figure(
-        plan,
-        elevation,
-        stems,
-        integrated["scans"],
-        title=f"{campaign.name}: next vantage positions",
-    )
-    with atomic_write(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    return path

@@ -1,8 +1,7 @@
 """Range-image pictures of one scan (JP Fig. 7 (a)-(d) / thesis Fig. 4.15): range image, segment
-mask,
-valid-circle mask (each row's mark as wide as the circle, thesis 3.8) and cylinders over the range
-image;
-the range-mask picture of ingest and the azimuth of a chain for zooming."""
+mask, valid-circle mask (each row's mark as wide as the circle, thesis 3.8) and cylinders over the
+range image, and the azimuth of a chain for zooming (the Dagster UI's small pictures:
+:mod:`.range_pictures`)."""
 
 from __future__ import annotations
 
@@ -18,7 +17,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 
-def _angles_extent(image: RangeImage) -> tuple[float, float, float, float]:
+def angles_extent(image: RangeImage) -> tuple[float, float, float, float]:
     """imshow extent in degrees: columns = azimuth, rows = elevation (row 0 at the top)."""
     az, el = image.azimuth_deg, image.elevation_deg
     da = image.azimuth_step_deg / 2 or 0.5
@@ -133,7 +132,7 @@ def range_image_panels(
     (degrees) zoom in. Panels without data are left out."""
     from forestmap_assets.core.features.segments import segment_mask
 
-    extent = _angles_extent(image)
+    extent = angles_extent(image)
     view = (*(azimuth_range or extent[:2]), *(elevation_range or extent[2:]))
     lo, hi = limits or range_limits(image)
     panels: list[tuple[str, str]] = [("a", "range image")]
@@ -251,52 +250,6 @@ def range_image_panels(
         axes[-1].set_xlabel("azimuth (deg)")
     if title:
         fig.suptitle(title)
-    return fig
-
-
-def range_mask_figure(
-    image: RangeImage,
-    mask: np.ndarray | None,
-    title: str,
-    *,
-    width: float = 9.0,
-    label: str = "mask",
-    outlines: list[np.ndarray] | None = None,
-    outline_label: str = "cylinder segments",
-) -> Figure:
-    """A small picture for the Dagster UI: the range image in grey (robust limits, pale blue =
-    no return, axes in degrees) with a boolean ``mask`` (segments, circles, occlusion
-    boundaries) in red on top and optional ``outlines`` (:func:`cylinder_outlines`) in orange."""
-    extent = _angles_extent(image)
-    lo, hi = range_limits(image)
-    span_az, span_el = extent[1] - extent[0], extent[3] - extent[2]
-    fig = new_figure(width, (width - 1.4) * span_el / span_az + 0.8)
-    ax = fig.subplots()
-    im = ax.imshow(
-        np.ma.masked_invalid(image.range_m),
-        cmap=colour_map("gray").with_extremes(bad=NO_RETURN),
-        vmin=lo,
-        vmax=hi,
-        extent=extent,
-        interpolation="nearest",
-        aspect="equal",
-    )
-    if mask is not None and mask.any():
-        rgba = np.zeros(mask.shape + (4,))
-        rgba[mask] = (0.9, 0.05, 0.05, 0.85)
-        ax.imshow(rgba, extent=extent, interpolation="nearest", aspect="equal")
-        title = f"{title} (red: {label}, {int(mask.sum())} pixels)"
-    if outlines:
-        for poly in outlines:
-            ax.plot(poly[:, 0], poly[:, 1], color="#ff8c00", lw=0.9)
-        ax.set_xlim(extent[0], extent[1])
-        ax.set_ylim(extent[2], extent[3])
-        title = f"{title} (orange: {len(outlines)} {outline_label})"
-    cb = fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, extend="both")
-    cb.set_label("range (m)")
-    ax.set_title(title, fontsize=10)
-    ax.set_xlabel("azimuth (deg)")
-    ax.set_ylabel("elevation (deg)")
     return fig
 
 

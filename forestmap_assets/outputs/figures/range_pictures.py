@@ -1,0 +1,84 @@
+"""Small pictures of one scan's range image for the Dagster UI (segments, circles, cylinders,
+occlusion boundaries over the range image), drawn straight from the arrays with Pillow: a per-scan
+step pays milliseconds for its picture instead of a matplotlib figure's layout (issue 16). The
+caption says what the axes and colours are; notebooks draw the full figures
+(:mod:`.range_images`)."""
+
+from __future__ import annotations
+
+import io
+import warnings
+
+import numpy as np
+
+from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.outputs.figures.common import Picture
+from forestmap_assets.outputs.figures.range_images import angles_extent, range_limits
+
+NO_RETURN_RGB = (207, 227, 245)  # figures.common.NO_RETURN
+MASK_RGB, MASK_ALPHA = (230, 13, 13), 0.85
+OUTLINE_RGB = (255, 140, 0)
+
+
+def _block_reduce(a: np.ndarray, f: int, how) -> np.ndarray:
+    """``a`` (rows, cols) reduced over ``f`` x ``f`` blocks (edges padded with the fill value)."""
+    if f == 1:
+        return a
+    rows, cols = a.shape
+    pr, pc = -rows % f, -cols % f
+    fill = np.nan if a.dtype.kind == "f" else False
+    if pr or pc:
+        a = np.pad(a, ((0, pr), (0, pc)), constant_values=fill)
+    blocks = a.reshape(a.shape[0] // f, f, a.shape[1] // f, f)
+    return how(blocks, axis=(1, 3))
+
+
+def range_mask_picture(
+    image: RangeImage,
+    mask: np.ndarray | None,
+    title: str,
+    *,
+    label: str = "mask",
+    outlines: list[np.ndarray] | None = None,
+    outline_label: str = "cylinder segments",
+    max_width: int = 900,
+) -> Picture:
+    """The range image in grey (near = dark, robust limits :func:`.range_images.range_limits`,
+    pale blue = no return) with a boolean ``mask`` in red and optional ``outlines`` (polygons of
+    azimuth/elevation degrees, :func:`.range_images.cylinder_outlines`) in orange; at most
+    ``max_width`` pixels wide (blocks of pixels: the nearest range, any mask pixel)."""
+    from PIL import Image, ImageDraw
+
+    rows, cols = image.shape
+    f = max(1, -(-cols // max_width))
+    lo, hi = range_limits(image)
+    rng = np.where(image.valid, image.range_m, np.nan).astype(np.float32)
+    with warnings.catch_warnings():  # an all-empty block is no return
+        warnings.simplefilter("ignore", RuntimeWarning)
+        near = _block_reduce(rng, f, np.nanmin)
+    grey = np.clip((near - lo) / max(hi - lo, 1e-9), 0.0, 1.0) * 255.0
+    rgb = np.repeat(np.nan_to_num(grey, nan=0.0)[..., None], 3, axis=2)
+    rgb[np.isnan(near)] = NO_RETURN_RGB
+    caption = title
+    if mask is not None and mask.any():
+        m = _block_reduce(np.asarray(mask, bool), f, np.any)
+        rgb[m] = (1 - MASK_ALPHA) * rgb[m] + MASK_ALPHA * np.asarray(MASK_RGB, float)
+        caption = f"{caption} (red: {label}, {int(np.count_nonzero(mask))} pixels)"
+    picture = Image.fromarray(rgb.astype(np.uint8), "RGB")
+    a0, a1, e0, e1 = angles_extent(image)
+    if outlines:
+        draw = ImageDraw.Draw(picture)
+        w, h = picture.size
+        for poly in outlines:
+            x = (poly[:, 0] - a0) / (a1 - a0) * cols / f
+            y = (e1 - poly[:, 1]) / (e1 - e0) * rows / f
+            draw.line(list(zip(x.tolist(), y.tolist(), strict=True)), fill=OUTLINE_RGB, width=1)
+        caption = f"{caption} (orange: {len(outlines)} {outline_label})"
+    buf = io.BytesIO()
+    picture.save(buf, format="PNG", compress_level=3)
+    caption += (
+        f"; columns: azimuth {a0:.0f} to {a1:.0f} deg, rows: elevation {e1:.0f} (top) to"
+        f" {e0:.0f} deg; grey: range {lo:g}-{hi:g} m (near = dark), pale blue: no return"
+        + (f"; 1 pixel = {f} x {f} image pixels" if f > 1 else "")
+    )
+    return Picture(buf.getvalue(), caption)
