@@ -20,7 +20,7 @@ from pathlib import Path
 from dagster import DagsterInstance
 from dagster._core.storage.defs_state.base import set_defs_state_storage
 
-from forestmap_assets.assets.pairs import PAIR_LISTS
+from forestmap_assets.assets.pairs import PAIR_LISTS, PAIR_SCAN_INPUTS
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.io.store import default_store_url
 from forestmap_assets.orchestration.cluster import dask_cluster
@@ -139,6 +139,7 @@ def _run(
     for stage, _ in stages_all:
         if any(granularity.get(p) == "pair" or p in after_pairs for p in parents[stage]):
             after_pairs.add(stage)
+    late_stages = _late_stages(scan_stages, parents, granularity)
     with contextlib.ExitStack() as stack:
         stack.enter_context(campaign_lock(instance, campaign, progress))
         if not share_namespace:
@@ -166,6 +167,7 @@ def _run(
             progress(f"{campaign.name}: {n} scans, 0 to process, {n} up to date" + campaign.prior_note)
             summary.seconds = time.perf_counter() - start
             return summary
+        session.start_workers()  # likely work to do: the workers start while the states are read
         attempts: dict[tuple[str, str | None], int] = {}
         first = True
         while True:
@@ -189,11 +191,16 @@ def _run(
                     ):
                         blocked.add((stage, part))
             due -= blocked
-            scans = partition_work(campaign.scan_ids, scan_stages, due, parents, granularity)
+            due -= set(session.pending)  # late scans' runs still going
+            # where-to-scan-next stages wait for the pairs' runs, then run beside the campaign's
+            late = partition_work(campaign.scan_ids, late_stages, due, parents, granularity) if session.can_run_late else {}
+            early = [s for s in scan_stages if s not in late_stages] if late else scan_stages
+            scans = partition_work(campaign.scan_ids, early, due, parents, granularity)
             if first:
-                fresh = sum(1 for sid in campaign.scan_ids if sid not in scans)
+                todo = set(scans) | set(late)
                 progress(
-                    f"{campaign.name}: {len(campaign.scan_ids)} scans, {len(scans)} to process, {fresh} up to date"
+                    f"{campaign.name}: {len(campaign.scan_ids)} scans, {len(todo)} to process, "
+                    f"{len(campaign.scan_ids) - len(todo)} up to date"
                     + campaign.prior_note
                 )
                 first = False
@@ -202,8 +209,9 @@ def _run(
                 session.run_partitions("scan", scans)
                 continue
             pairs = partition_work(pairs_now, pair_stages, due, parents, granularity)
+            waiting = _readers_of({s for s, _ in session.pending} | set().union(*late.values()), parents, stages_all)
             level = safe_subset(
-                {s for s in level_stages if (s, None) in due},
+                {s for s in level_stages if (s, None) in due and s not in waiting},
                 {s: [p for p in parents[s] if granularity[p] == "campaign"] for s in level_stages},
             )
             # candidate_pairs runs with what does not read pairs: its pairs come next. retry_pairs
@@ -216,8 +224,15 @@ def _run(
                 if not level:
                     progress(f"  {len(pairs)} pairs to register")
                     count_attempts(attempts, pairs)
-                    session.run_partitions("pair", pairs)
+                    count_attempts(attempts, late)
+                    session.run_partitions("pair", pairs, late=late)
                     continue
+            if not level and (late or session.pending):
+                if late:  # nothing else to do: the late stages run now
+                    count_attempts(attempts, late)
+                    session.run_partitions("scan", late)
+                session.wait_late()
+                continue
             if not level:
                 if settle and not session.failed and all(
                     v == "fresh" for k, v in states.items() if k[0] in granularity
@@ -228,9 +243,36 @@ def _run(
             for s in stages:
                 attempts[(s, None)] = attempts.get((s, None), 0) + 1
             progress(f"  campaign: {', '.join(stages)}")
+            if late and PAIR_LISTS[0] not in stages:  # beside this run, in the workers
+                count_attempts(attempts, late)
+                session.run_partitions("scan", {}, late=late)
             session.execute("campaign", stages, None, 1)
     for stage, scan, _ in summary.failures:
         if scan is not None and materialised_before(instance, campaign, stage, scan):
             summary.kept_earlier.add(scan)
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def _late_stages(scan_stages: list[str], parents: dict[str, list[str]], granularity: dict[str, str]) -> list[str]:
+    """Per-scan stages that neither the pairs' runs (:data:`.pairs.PAIR_SCAN_INPUTS`) nor the
+    pair lists read, directly or through another stage: the where-to-scan-next stages
+    (occlusion boundaries, issue 16), which run late, beside the campaign-level stages."""
+    needed = {s for s in PAIR_SCAN_INPUTS if s in granularity}
+    needed |= {p for s in PAIR_LISTS if s in granularity for p in parents[s]}
+    frontier = list(needed)
+    while frontier:
+        for p in parents.get(frontier.pop(), []):
+            if p not in needed:
+                needed.add(p)
+                frontier.append(p)
+    return [s for s in scan_stages if s not in needed]
+
+
+def _readers_of(stages: set[str], parents: dict[str, list[str]], stages_all) -> set[str]:
+    """Every stage that reads one of ``stages``, directly or through another stage."""
+    out: set[str] = set()
+    for stage, _ in stages_all:  # in graph order
+        if any(p in stages or p in out for p in parents[stage]):
+            out.add(stage)
+    return out

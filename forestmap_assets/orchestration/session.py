@@ -105,6 +105,9 @@ class Session:
         self._stage_of_step = {f"{campaign.key}__{s}": s for s in stage_names}
         self._pool: ProcessPoolExecutor | None = None
         self._closers: list = []
+        self._pool_lock = threading.Lock()
+        self._starter: threading.Thread | None = None
+        self.pending: dict[tuple[str, str], object] = {}  # (stage, scan) -> future of a late run
 
     def recon(self, kind: str):
         return build_reconstructable_job(
@@ -220,10 +223,21 @@ class Session:
         observe_pair_inputs(self.instance, self.campaign,
                             changed_pair_inputs(self.campaign, self.instance, self.store_url))
 
-    def run_partitions(self, kind: str, todo: dict[str, list[str]]) -> None:
+    @property
+    def can_run_late(self) -> bool:
+        """Whether scans' runs can be left running in the session's workers (in_process)."""
+        return self.executor == "in_process" and self.workers > 1
+
+    def run_partitions(
+        self, kind: str, todo: dict[str, list[str]], late: dict[str, list[str]] | None = None
+    ) -> None:
         """One run per scan (``kind`` ``scan``) or pair (``pair``): here one after another, or
         side by side in worker processes (Dagster's run machinery is not thread-safe, so no
-        threads)."""
+        threads). ``late``: scans' runs queued behind these (:attr:`can_run_late`) and left
+        running when they are done, their results collected by :meth:`wait_late`."""
+        if self.can_run_late and late:
+            self._collect(self._in_process_pool(), kind, todo, self.workers, late=late)
+            return
         if len(todo) == 1 or (self.executor == "in_process" and self.workers <= 1):
             for part, stages in todo.items():
                 self.execute(kind, stages, part, 1)
@@ -250,6 +264,10 @@ class Session:
         """The session's workers for in_process runs, kept for all its waves: started from a fork
         server that has only imported forestmap (this process may have used OpenMP, which a fork
         must not inherit), the cores shared out among them."""
+        with self._pool_lock:
+            return self._start_pool()
+
+    def _start_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
             ctx = multiprocessing.get_context("forkserver")
             ctx.set_forkserver_preload(["forestmap_assets.orchestration.session"])
@@ -264,12 +282,29 @@ class Session:
 
     def close(self) -> None:
         """Stop the session's workers (if any)."""
+        if self._starter is not None:
+            self._starter.join()
+            self._starter = None
         for close in self._closers:
             close()
         self._pool, self._closers = None, []
 
-    def _collect(self, pool, kind: str, todo: dict[str, list[str]], n: int, start=None) -> None:
-        base = (
+    def wait_late(self) -> None:
+        """Collect the late runs (:meth:`run_partitions`)."""
+        pending, self.pending = self.pending, {}
+        for fut in dict.fromkeys(pending.values()):
+            self._record(fut.result())
+
+    def _record(self, result) -> None:
+        ran, failures, checks, failed, run_ids = result
+        self.summary.ran.extend(ran)
+        self.summary.failures.extend(failures)
+        self.summary.check_failures.extend(checks)
+        self.summary.run_ids.extend(run_ids)
+        self.failed |= failed
+
+    def _base(self) -> tuple:
+        return (
             str(self.campaign.root),
             self.instance.get_ref(),
             self.executor,
@@ -278,16 +313,33 @@ class Session:
             self.dask_address,
             self.session,
         )
+
+    def start_workers(self) -> None:
+        """Start the in_process workers now, in the background, and let each load the campaign's
+        definitions and the per-scan libraries while this process works out what is due."""
+        if not self.can_run_late:
+            return
+
+        def start() -> None:
+            pool, base = self._in_process_pool(), self._base()
+            for _ in range(self.workers):
+                pool.submit(_warm_worker, base)
+
+        self._starter = threading.Thread(target=start, daemon=True)
+        self._starter.start()
+
+    def _collect(
+        self, pool, kind: str, todo: dict[str, list[str]], n: int, start=None, late=None
+    ) -> None:
+        base = self._base()
         futures = [pool.submit(_partition_worker, base, kind, part, stages, n) for part, stages in todo.items()]
+        for part, stages in (late or {}).items():
+            fut = pool.submit(_partition_worker, base, "scan", part, stages, n)
+            self.pending.update({(stage, part): fut for stage in stages})
         if start is not None:
             start()
         for fut in futures:
-            ran, failures, checks, failed, run_ids = fut.result()
-            self.summary.ran.extend(ran)
-            self.summary.failures.extend(failures)
-            self.summary.check_failures.extend(checks)
-            self.summary.run_ids.extend(run_ids)
-            self.failed |= failed
+            self._record(fut.result())
 
 
 _QUEUE = None
@@ -323,13 +375,27 @@ def _drain(queue, progress: Progress) -> None:
 _WORKER: dict = {}  # per worker process: instance, campaign and (in_process) definitions
 
 
-def _partition_worker(base: tuple, kind: str, part: str, stages: list[str], concurrent_runs: int):
-    """One scan's or pair's run in a worker process; returns what the parent session records."""
-    folder, ref, executor, store_url, workers, dask_address, session_id = base
+def _load_worker(base: tuple) -> None:
+    folder, ref, executor, store_url, *_ = base
     if _WORKER.get("base") != base:
         campaign = load_campaign(folder)
         defs = build_definitions([campaign], store_url, executor=executor) if executor == "in_process" else None
         _WORKER.update(base=base, instance=DagsterInstance.from_ref(ref), campaign=campaign, defs=defs)
+
+
+def _warm_worker(base: tuple) -> None:
+    """A worker's first task (:meth:`Session.start_workers`): the campaign, its definitions, the
+    instance, and the libraries of the per-scan stages."""
+    import open3d  # noqa: F401
+    import scipy.spatial  # noqa: F401
+
+    _load_worker(base)
+
+
+def _partition_worker(base: tuple, kind: str, part: str, stages: list[str], concurrent_runs: int):
+    """One scan's or pair's run in a worker process; returns what the parent session records."""
+    folder, ref, executor, store_url, workers, dask_address, session_id = base
+    _load_worker(base)
     session = Session(
         _WORKER["campaign"],
         _WORKER["instance"],

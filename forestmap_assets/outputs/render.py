@@ -399,11 +399,11 @@ def render_map(
         return save_png(
             map_figure_mpl(cylinders, grid, poses, title=title + " (matplotlib fallback)"), path
         )
-    from matplotlib.image import imsave
+    from PIL import Image
 
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}.png")
-    try:
-        imsave(tmp, img)
+    try:  # light compression: a third of the default's time for a slightly larger file
+        Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8)).save(tmp, format="PNG", compress_level=2)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
