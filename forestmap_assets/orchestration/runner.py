@@ -170,11 +170,14 @@ def _run(
         session.start_workers()  # likely work to do: the workers start while the states are read
         attempts: dict[tuple[str, str | None], int] = {}
         first = True
+        done_scans: dict[tuple[str, str | None], str] = {}
+        recheck: set[str] | None = None  # stages whose states are read again (None: all)
         while True:
             if pair_stages:
                 session.sync_pairs()
             pairs_now = partitions_of(instance, campaign, "pair")
-            states = direct_states(defs, campaign, instance, check_files=False)
+            # once the scans' runs are done, their states stay as they are for this session
+            states = {**done_scans, **direct_states(defs, campaign, instance, check_files=False, only=recheck)}
             # a stage that ran and is still not fresh gets one more chance (a stage that reads
             # its own downstream's partitions, retry_pairs, settles on the second run)
             due = {
@@ -208,6 +211,10 @@ def _run(
                 count_attempts(attempts, scans)
                 session.run_partitions("scan", scans)
                 continue
+            if recheck is None:
+                early_stages = [s for s in scan_stages if s not in late_stages]
+                done_scans = {k: v for k, v in states.items() if k[0] in early_stages}
+                recheck = {s for s, _ in stages_all if s not in early_stages}
             pairs = partition_work(pairs_now, pair_stages, due, parents, granularity)
             waiting = _readers_of({s for s, _ in session.pending} | set().union(*late.values()), parents, stages_all)
             level = safe_subset(

@@ -152,13 +152,14 @@ def observe_scan_files(
 
 def direct_states(
     defs: Definitions, campaign: Campaign, instance: DagsterInstance, check_files: bool = True,
-    store_url: str | None = None,
+    store_url: str | None = None, only: set[str] | None = None,
 ) -> dict[tuple[str, str | None], str]:
     """Dagster's own status of every (stage, scan) and (stage, None): ``missing``, ``stale``
     (a cause of its own: new code version, or an input with a new data version) or ``fresh``;
-    ``check_files`` also hashes the scan files (a changed, not yet observed file: stale)."""
+    ``check_files`` also hashes the scan files (a changed, not yet observed file: stale).
+    ``only``: just these stages (the runner's later waves, whose scans are done)."""
     resolver = _resolver(defs, instance)
-    stages = campaign_stages(defs, campaign)
+    stages = [(s, g) for s, g in campaign_stages(defs, campaign) if only is None or s in only]
     resolver.instance_queryer.prefetch_asset_records([asset_key(campaign, s) for s, _ in stages])
     out: dict[tuple[str, str | None], str] = {}
     parts = {g: partitions_of(instance, campaign, g) for g in ("scan", "pair", "campaign")}
