@@ -25,28 +25,35 @@ def voxel_subsample(points: np.ndarray, voxel_m: float, origin=None) -> np.ndarr
 
     The bounding cube is anchored at the minimum corner (spec 3.2, steps 1-2); a voxel of edge
     ``voxel_m`` keeps the point nearest to the centroid of its points, so the kept point (and its
-    colour) is an actual measurement (spec 3.2 recommendation, inferred); ties go to the
+    colour) is an actual measurement (spec 3.2 recommendation, inferred); ties (distances rounded
+    to 1e-9 voxel^2, so that e.g. the two points of a two-point voxel tie exactly) go to the
     lexicographically smallest point. Every voxel with an input point keeps exactly one, and the
-    result does not depend on the input order.
+    result does not depend on the input order (one sort, then one pass:
+    :mod:`forestmap_assets.core._cloud_kernels`).
     """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) == 0:
         return np.zeros(0, dtype=np.int64)
-    keys, _ = voxel_keys(p, voxel_m, origin)
-    keys -= keys.min(axis=0)
-    dims = keys.max(axis=0) + 1
-    flat = np.ravel_multi_index(keys.T, dims)
-    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    centroid = np.stack([np.bincount(inverse, weights=p[:, k]) for k in range(3)], axis=1)
-    centroid /= counts[:, None]
-    # distance to the centroid, rounded so that equidistant points (e.g. the two points of a
-    # two-point voxel) tie exactly; ties go to the lexicographically smallest point, so the
-    # choice does not depend on the input order
-    d2 = np.round(((p - centroid[inverse]) ** 2).sum(axis=1) / float(voxel_m) ** 2, 9)
-    order = np.lexsort((p[:, 2], p[:, 1], p[:, 0], d2, inverse))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = inverse[order[1:]] != inverse[order[:-1]]
-    return np.sort(order[first])
+    from forestmap_assets.core._cloud_kernels import (
+        lower_corner,
+        voxel_numbers,
+        voxel_representatives,
+    )
+
+    o = lower_corner(p) if origin is None else np.asarray(origin, dtype=np.float64)  # as voxel_keys
+    flat = voxel_numbers(p, float(voxel_m), o)
+    order = np.argsort(flat, kind="stable")  # voxel by voxel, each in input order
+    kept = np.zeros(len(p), dtype=bool)
+    kept[voxel_representatives(p, order, flat[order], float(voxel_m))] = True
+    return np.flatnonzero(kept)
+
+
+def z_order(points: np.ndarray) -> np.ndarray:
+    """Indices ordering ``points`` along a Morton (Z-order) curve of their bounding box (2^21
+    cells per axis): neighbours in space become neighbours in the order."""
+    from forestmap_assets.core._cloud_kernels import morton_codes
+
+    return np.argsort(morton_codes(np.asarray(points, dtype=np.float64).reshape(-1, 3)), kind="stable")
 
 
 def radius_outlier_mask(points: np.ndarray, radius_m: float, min_neighbours: int,

@@ -1,0 +1,108 @@
+"""Numba kernels of :func:`~forestmap_assets.core.cloud.voxel_subsample` (spec 3.2) and
+:func:`~forestmap_assets.core.cloud.z_order`. The voxel subsample numbers the voxels, then makes
+one pass over the points sorted voxel by voxel, with the arithmetic of the numpy formulation it
+replaced (``floor((p - origin) / voxel_m)``, centroid summed in input order, squared distance over
+``voxel_m^2`` rounded to 9 decimals), so the representatives are the same (finite points)."""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+
+@nb.njit(cache=True)
+def lower_corner(p):
+    """``p.min(axis=0)`` in one pass over the rows."""
+    lo = p[0].copy()
+    for i in range(1, p.shape[0]):
+        for a in range(3):
+            lo[a] = min(lo[a], p[i, a])
+    return lo
+
+
+@nb.njit(cache=True)
+def voxel_numbers(p, voxel_m, origin):
+    """Row-major number of each point's voxel (edge ``voxel_m``, anchored at ``origin``) in the
+    box of the occupied voxels."""
+    n = p.shape[0]
+    keys = np.empty((n, 3), np.int64)
+    kmin = np.full(3, np.iinfo(np.int64).max)
+    kmax = np.full(3, np.iinfo(np.int64).min)
+    for i in range(n):
+        for a in range(3):
+            k = int(math.floor((p[i, a] - origin[a]) / voxel_m))
+            keys[i, a] = k
+            kmin[a] = min(kmin[a], k)
+            kmax[a] = max(kmax[a], k)
+    ny, nz = kmax[1] - kmin[1] + 1, kmax[2] - kmin[2] + 1
+    flat = np.empty(n, np.int64)
+    for i in range(n):
+        flat[i] = ((keys[i, 0] - kmin[0]) * ny + keys[i, 1] - kmin[1]) * nz + keys[i, 2] - kmin[2]
+    return flat
+
+
+@nb.njit(cache=True)
+def voxel_representatives(p, order, flat, voxel_m):
+    """Input rows of the representative of each voxel: ``order`` lists the rows voxel by voxel
+    (stable: each voxel's points in input order), ``flat`` their voxel numbers in that order.
+    The representative is the point nearest the voxel's centroid; ties go to the
+    lexicographically smallest point, then to the first in input order."""
+    n = len(order)
+    out = np.empty(n, np.int64)
+    v2 = voxel_m * voxel_m
+    nv = 0
+    s = 0
+    while s < n:
+        e = s + 1
+        while e < n and flat[e] == flat[s]:
+            e += 1
+        cx = cy = cz = 0.0
+        for t in range(s, e):
+            cx += p[order[t], 0]
+            cy += p[order[t], 1]
+            cz += p[order[t], 2]
+        cx, cy, cz = cx / (e - s), cy / (e - s), cz / (e - s)
+        best = order[s]
+        bd = np.inf
+        for t in range(s, e):
+            i = order[t]
+            x, y, z = p[i, 0], p[i, 1], p[i, 2]
+            d = np.rint(((x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2) / v2 * 1e9) / 1e9
+            b = p[best]
+            if d < bd or (d == bd and (x < b[0] or (x == b[0] and (y < b[1] or (y == b[1] and z < b[2]))))):
+                best, bd = i, d
+        out[nv] = best
+        nv += 1
+        s = e
+    return out[:nv]
+
+
+@nb.njit(cache=True, inline="always")
+def _spread_bits(v):
+    """The low 21 bits of ``v`` spread to every third bit."""
+    v &= 0x1FFFFF
+    v = (v | (v << 32)) & 0x1F00000000FFFF
+    v = (v | (v << 16)) & 0x1F0000FF0000FF
+    v = (v | (v << 8)) & 0x100F00F00F00F00F
+    v = (v | (v << 4)) & 0x10C30C30C30C30C3
+    return (v | (v << 2)) & 0x1249249249249249
+
+
+@nb.njit(cache=True)
+def morton_codes(p):
+    """63-bit Morton (Z-order) codes of the points in their bounding box, 2^21 cells per axis."""
+    lo = lower_corner(p)
+    hi = p[0].copy()
+    for i in range(1, p.shape[0]):
+        for a in range(3):
+            hi[a] = max(hi[a], p[i, a])
+    step = max(max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) / 0x1FFFFF, 1e-300)
+    code = np.empty(p.shape[0], np.int64)
+    for i in range(p.shape[0]):
+        c = 0
+        for a in range(3):
+            c |= _spread_bits(min(int(math.floor((p[i, a] - lo[a]) / step)), 0x1FFFFF)) << a
+        code[i] = c
+    return code
