@@ -243,7 +243,7 @@ def picture_metadata(picture) -> MetadataValue:
 def png_metadata(fig) -> MetadataValue:
     """A matplotlib figure as an inline Markdown image for the Dagster UI."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=80, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=80)  # laid out already; a tight box would draw it twice
     import matplotlib.pyplot as plt
 
     plt.close(fig)
