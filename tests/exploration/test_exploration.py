@@ -517,7 +517,8 @@ def test_assets_occlusion_and_next_vantage_points(tmp_path):
     )
     assert res.success
     out = load_asset("next_vantage_points", campaign=campaign)
-    assert set(out) == {"proposals", "paths", "coverage", "cells"}
+    assert set(out) == {"proposals", "paths", "coverage", "cells", "picture"}
+    assert bytes(out["picture"]["png"].iloc[0])[:4] == b"\x89PNG"  # the report shows it
     cov = out["coverage"]["coverage"].iloc[0]
     assert 0.2 < cov < 1.0, cov
     props = out["proposals"]

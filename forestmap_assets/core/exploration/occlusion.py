@@ -27,13 +27,14 @@ only the third cause of occlusion).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.features.range_image import RangeImage, spherical_to_xyz
+from forestmap_assets.core.exploration import _surface_kernels as kernels
+from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.params.men import Combine
 
 BOUNDARY_COLUMNS = [
@@ -74,7 +75,8 @@ class OcclusionBoundaries:
     ``tilt_pair[v, u]`` is the pair (v, u)-(v+1, u) (shape rows-1 x cols); ``pan_pair[v, u]``
     the pair (v, u)-(v, u+1) (shape rows x cols-1, or rows x cols when the azimuth wraps, the
     last column pairing with the first). ``*_ratio`` are ``Delta_s / r_near`` of the pairs and
-    ``*_threshold`` the thresholds they were compared with; ``*_jump`` are ``|Delta r|``.
+    ``*_threshold`` the thresholds they were compared with (a read-only broadcast view when one
+    per row); ``*_jump`` are ``|Delta r|``.
     Pixel masks: ``tilt``, ``pan`` (flagged by a pair of that direction), ``variance`` (the
     range-variance test alone), ``boundary`` (what the chosen ``combine`` rule flags, union of
     the directions), ``near`` / ``far`` (the pixel is the nearer / farther one of a flagged pair).
@@ -95,10 +97,33 @@ class OcclusionBoundaries:
     near: np.ndarray
     far: np.ndarray
     wrap: bool
+    _distinct: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.boundary.shape
+
+    def median_threshold(self, direction: Literal["tilt", "pan"]) -> float:
+        """``np.median`` of ``tilt_threshold`` / ``pan_threshold`` (NaN when empty), from the
+        distinct thresholds and their counts when :func:`detect_occlusions` recorded them."""
+        thr = getattr(self, f"{direction}_threshold")
+        if not thr.size:
+            return np.nan
+        if direction in self._distinct:
+            return _repeated_median(*self._distinct[direction])
+        return float(np.median(thr))
+
+
+def _repeated_median(values: np.ndarray, counts: np.ndarray) -> float:
+    """``np.median`` of ``values`` each repeated ``counts`` times, without the repeats (the mean
+    of the middle one or two of the sorted repeats, as numpy takes it)."""
+    if np.isnan(values).any():
+        return np.nan
+    order = np.argsort(values, kind="stable")
+    values, end = values[order], np.cumsum(counts[order])
+    n = int(end[-1])
+    middle = [(n - 1) // 2, n // 2] if n % 2 == 0 else [n // 2]
+    return float(np.mean(values[np.searchsorted(end, middle, side="right")]))
 
 
 def _pairs(a: np.ndarray, axis: int, wrap: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -110,38 +135,6 @@ def _pairs(a: np.ndarray, axis: int, wrap: bool) -> tuple[np.ndarray, np.ndarray
     return a[:, :-1], a[:, 1:]
 
 
-def _spread(
-    pair: np.ndarray,
-    axis: int,
-    wrap: bool,
-    which: Literal["first", "second", "both"] = "both",
-    shape: tuple[int, int] | None = None,
-) -> np.ndarray:
-    """Pixel mask from a pair mask: the first and/or second member of every True pair."""
-    rows, cols = (
-        shape
-        if shape is not None
-        else (pair.shape[0] + (axis == 0), pair.shape[1] + (axis == 1 and not wrap))
-    )
-    out = np.zeros((rows, cols), dtype=bool)
-    if axis == 0:
-        if which in ("first", "both"):
-            out[:-1] |= pair
-        if which in ("second", "both"):
-            out[1:] |= pair
-    elif wrap:
-        if which in ("first", "both"):
-            out |= pair
-        if which in ("second", "both"):
-            out |= np.roll(pair, 1, axis=1)
-    else:
-        if which in ("first", "both"):
-            out[:, :-1] |= pair
-        if which in ("second", "both"):
-            out[:, 1:] |= pair
-    return out
-
-
 def azimuth_wraps(azimuth_deg: np.ndarray, tolerance: float = 0.5) -> bool:
     """True when the columns cover the full circle (the last column neighbours the first)."""
     az = np.asarray(azimuth_deg, dtype=np.float64)
@@ -149,6 +142,22 @@ def azimuth_wraps(azimuth_deg: np.ndarray, tolerance: float = 0.5) -> bool:
         return False
     step = float(np.median(np.abs(np.diff(az))))
     return bool(abs(abs(az[-1] - az[0]) + step - 360.0) <= tolerance * step)
+
+
+def _pan_angles_deg(elevation_deg: np.ndarray, d_az: np.ndarray, exact: bool) -> np.ndarray:
+    """Angles (rows, len(d_az)) of pan pairs whose azimuths differ by ``d_az`` (deg)."""
+    el = np.asarray(elevation_deg, dtype=np.float64)
+    d_az = np.asarray(d_az, dtype=np.float64)[None, :]
+    if not exact:
+        return np.broadcast_to(d_az, (el.size, d_az.shape[1])).copy()
+    half = np.radians(d_az) / 2
+    return np.degrees(2 * np.arcsin(np.clip(np.cos(np.radians(el))[:, None] * np.sin(half), -1, 1)))
+
+
+def _azimuth_steps(azimuth_deg: np.ndarray, wrap: bool) -> np.ndarray:
+    """``|Delta az|`` (deg, folded to [0, 180]) of every pan pair."""
+    a0, a1 = _pairs(np.asarray(azimuth_deg, dtype=np.float64)[None, :], 1, wrap)
+    return np.abs(((a1 - a0) + 180.0) % 360.0 - 180.0)[0]
 
 
 def pair_angles_deg(
@@ -161,18 +170,40 @@ def pair_angles_deg(
     away from the horizon. ``exact=False``: the nominal steps, as in the thesis."""
     az = np.asarray(azimuth_deg, dtype=np.float64)
     el = np.asarray(elevation_deg, dtype=np.float64)
-    rows, cols = el.size, az.size
-    d_el = np.abs(np.diff(el))[:, None] * np.ones((1, cols))
-    a0, a1 = _pairs(az[None, :], 1, wrap)
-    d_az = np.abs(((a1 - a0) + 180.0) % 360.0 - 180.0)
-    if exact:
-        half = np.radians(d_az) / 2
-        d_pan = np.degrees(
-            2 * np.arcsin(np.clip(np.cos(np.radians(el))[:, None] * np.sin(half), -1, 1))
-        )
-    else:
-        d_pan = np.broadcast_to(d_az, (rows, d_az.shape[1])).copy()
-    return d_el, d_pan
+    d_el = np.abs(np.diff(el))[:, None] * np.ones((1, az.size))
+    return d_el, _pan_angles_deg(el, _azimuth_steps(az, wrap), exact)
+
+
+def _pair_thresholds(
+    azimuth_deg, elevation_deg, wrap: bool, exact: bool, alpha_thr_deg: float, beta_thr_deg: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`occlusion_threshold` of the tilt and pan pairs (as :func:`pair_angles_deg`) with the
+    trigonometry done once per row and distinct azimuth step: tilt thresholds (rows-1, 1), pan
+    thresholds (rows, steps) and the step of every pan pair (its column in the latter)."""
+    el = np.asarray(elevation_deg, dtype=np.float64)
+    tilt = occlusion_threshold(np.abs(np.diff(el))[:, None], alpha_thr_deg)
+    steps, step_of = np.unique(_azimuth_steps(azimuth_deg, wrap), return_inverse=True)
+    pan = occlusion_threshold(_pan_angles_deg(el, steps, exact), beta_thr_deg)
+    return np.asarray(tilt), np.asarray(pan), step_of.astype(np.int64)
+
+
+def ray_trig(image: RangeImage) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``cos az, sin az`` per column and ``cos el, sin el`` per row (as ``spherical_to_xyz``)."""
+    az = np.radians(np.asarray(image.azimuth_deg, dtype=np.float64))
+    el = np.radians(np.asarray(image.elevation_deg, dtype=np.float64))
+    return np.cos(az), np.sin(az), np.cos(el), np.sin(el)
+
+
+def point_source(image: RangeImage) -> tuple[np.ndarray, tuple]:
+    """What the kernels read ``image.xyz`` from at the valid pixels, without its float64 copy
+    where none is needed: the float32 ``points`` when no levelling rotation applies, nothing
+    (points from the range and :func:`ray_trig`) without points and rotation, else ``xyz``."""
+    trig = ray_trig(image)
+    if any(image.tilt_deg):
+        return image.xyz, trig
+    if image.points is not None:
+        return image.points, trig
+    return np.zeros((0, 0, 3)), trig
 
 
 def range_variance(range_m: np.ndarray, *, wrap: bool = False) -> np.ndarray:
@@ -217,110 +248,80 @@ def detect_occlusions(
     range sigmas of the Riegl). ``combine``: which test decides a pair: ``"spacing"`` (default,
     the thesis's primary detector), ``"variance"``, ``"either"`` or ``"both"``; the directions are
     always combined by union. ``wrap``: pair the last column with the first (default: when the
-    azimuths cover 360 deg)."""
-    rng = np.asarray(image.range_m, dtype=np.float64)
+    azimuths cover 360 deg). One pass of :func:`~._surface_kernels.pair_tests` per direction; the
+    thresholds are computed per row and distinct azimuth step."""
+    rows, cols = image.shape
     if wrap is None:
         wrap = azimuth_wraps(image.azimuth_deg)
-    xyz = spherical_to_xyz(rng, image.azimuth_deg, image.elevation_deg)
-    d_tilt, d_pan = pair_angles_deg(
-        image.azimuth_deg, image.elevation_deg, wrap=wrap, exact=exact_angles
+    tilt_thr, pan_thr, step_of = _pair_thresholds(
+        image.azimuth_deg, image.elevation_deg, wrap, exact_angles, alpha_thr_deg, beta_thr_deg
     )
+    trig = ray_trig(image)
+    masks = {
+        k: np.zeros((rows, cols), dtype=bool) for k in ("tilt", "pan", "variance", "near", "far")
+    }
     out: dict[str, np.ndarray] = {}
-    for name, axis, thr_deg, delta in (
-        ("tilt", 0, alpha_thr_deg, d_tilt),
-        ("pan", 1, beta_thr_deg, d_pan),
+    distinct = {}
+    for name, axis, n_pairs, thr, thr_col in (
+        ("tilt", 0, max(rows - 1, 0), tilt_thr, np.zeros(cols, dtype=np.int64)),
+        ("pan", 1, cols if wrap else max(cols - 1, 0), pan_thr, step_of),
     ):
-        p0, p1 = _pairs(xyz, axis, wrap and axis == 1)
-        r0, r1 = _pairs(rng, axis, wrap and axis == 1)
-        spacing = np.linalg.norm(p1 - p0, axis=-1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = spacing / np.fmin(r0, r1)
-            jump = np.abs(r1 - r0)
-        valid = np.isfinite(ratio)
-        thr = (
-            np.full(ratio.shape, ratio_cutoff, dtype=np.float64)
-            if ratio_cutoff is not None
-            else (np.broadcast_to(occlusion_threshold(delta, thr_deg), ratio.shape))
+        if ratio_cutoff is not None:
+            thr, thr_col = np.full((thr.shape[0], 1), float(ratio_cutoff)), np.zeros_like(thr_col)
+        # pair (v, u) is tested against thr[v, thr_col[u]]
+        ratio, jump, flag = kernels.pair_tests(
+            image.range_m, trig, axis, n_pairs, thr, thr_col, float(variance_threshold_m),
+            kernels.COMBINE[combine], masks[name], masks["near"], masks["far"], masks["variance"],
+        )  # fmt: skip
+        out[f"{name}_pair"], out[f"{name}_ratio"], out[f"{name}_jump"] = flag, ratio, jump
+        out[f"{name}_threshold"] = (
+            np.broadcast_to(thr, ratio.shape) if thr.shape[1] == 1 else thr[:, thr_col]
         )
-        spacing_flag = valid & (ratio >= thr)
-        variance_flag = valid & (jump > variance_threshold_m)
-        flag = {
-            "spacing": spacing_flag,
-            "variance": variance_flag,
-            "either": spacing_flag | variance_flag,
-            "both": spacing_flag & variance_flag,
-        }[combine]
-        out[f"{name}_pair"] = flag
-        out[f"{name}_ratio"] = np.where(valid, ratio, np.nan)
-        out[f"{name}_threshold"] = np.asarray(thr, dtype=np.float64)
-        out[f"{name}_jump"] = np.where(valid, jump, np.nan)
-        out[name] = _spread(flag, axis, wrap and axis == 1, shape=rng.shape)
-        first_near = np.where(valid, r0 <= r1, False)
-        out[f"{name}_near"] = _spread(
-            flag & first_near, axis, wrap and axis == 1, "first", rng.shape
-        ) | _spread(flag & ~first_near, axis, wrap and axis == 1, "second", rng.shape)
-        out[f"{name}_far"] = _spread(
-            flag & ~first_near, axis, wrap and axis == 1, "first", rng.shape
-        ) | _spread(flag & first_near, axis, wrap and axis == 1, "second", rng.shape)
-    v = range_variance(rng, wrap=wrap)
-    return OcclusionBoundaries(
-        tilt_pair=out["tilt_pair"],
-        pan_pair=out["pan_pair"],
-        tilt_ratio=out["tilt_ratio"],
-        pan_ratio=out["pan_ratio"],
-        tilt_threshold=out["tilt_threshold"],
-        pan_threshold=out["pan_threshold"],
-        tilt_jump=out["tilt_jump"],
-        pan_jump=out["pan_jump"],
-        variance=np.nan_to_num(v, nan=0.0) > variance_threshold_m,
-        tilt=out["tilt"],
-        pan=out["pan"],
-        boundary=out["tilt"] | out["pan"],
-        near=out["tilt_near"] | out["pan_near"],
-        far=out["tilt_far"] | out["pan_far"],
+        per_col = np.bincount(thr_col, minlength=thr.shape[1])
+        distinct[name] = (thr.ravel(), np.tile(per_col, thr.shape[0]))
+    if variance_threshold_m < 0:  # v_ij >= 0 everywhere (0 without neighbours or return)
+        masks["variance"][:] = True
+    ob = OcclusionBoundaries(
+        **out,
+        variance=masks["variance"],  # range_variance(...) > variance_threshold_m
+        tilt=masks["tilt"],
+        pan=masks["pan"],
+        boundary=masks["tilt"] | masks["pan"],
+        near=masks["near"],
+        far=masks["far"],
         wrap=bool(wrap),
     )
+    ob._distinct.update(distinct)
+    return ob
 
 
 def boundaries_table(image: RangeImage, ob: OcclusionBoundaries) -> pd.DataFrame:
     """Flagged pixels as a table (``BOUNDARY_COLUMNS``): levelled ``x, y, z``; ``tilt_pair`` /
     ``pan_pair`` tell that the pair with the next row / column is flagged (so the pair masks can
     be rebuilt with :func:`pair_masks`); ``ratio`` the largest ``Delta_s / r`` of its pairs."""
-    v, u = np.nonzero(ob.boundary | ob.variance)
-    rows, cols = ob.shape
-    tilt_pair = np.zeros((rows, cols), dtype=bool)
-    tilt_pair[:-1] = ob.tilt_pair
-    pan_pair = np.zeros((rows, cols), dtype=bool)
-    pan_pair[:, : ob.pan_pair.shape[1]] = ob.pan_pair
-    ratio = np.zeros((rows, cols))
-    for pr, axis in ((ob.tilt_ratio, 0), (ob.pan_ratio, 1)):
-        r = np.nan_to_num(pr, nan=0.0)
-        first = np.zeros((rows, cols))
-        second = np.zeros((rows, cols))
-        if axis == 0:
-            first[:-1], second[1:] = r, r
-        elif ob.wrap:
-            first, second = r, np.roll(r, 1, axis=1)
-        else:
-            first[:, :-1], second[:, 1:] = r, r
-        ratio = np.maximum(ratio, np.maximum(first, second))
-    pts = image.xyz[v, u]
+    flat = np.flatnonzero(ob.boundary | ob.variance)
+    v, u = np.divmod(flat, ob.shape[1])
+    xyz, trig = point_source(image)
+    pts, ratio, tilt_next, pan_next = kernels.boundary_columns(
+        v, u, xyz, image.range_m, trig, ob.tilt_ratio, ob.pan_ratio, ob.tilt_pair, ob.pan_pair,
+        ob.wrap,
+    )  # fmt: skip
     return pd.DataFrame(
         {
             "row": v.astype(np.int32),
             "col": u.astype(np.int32),
-            "range_m": image.range_m[v, u].astype(np.float32),
-            "x": pts[:, 0].astype(np.float32),
-            "y": pts[:, 1].astype(np.float32),
-            "z": pts[:, 2].astype(np.float32),
-            "tilt": ob.tilt[v, u],
-            "pan": ob.pan[v, u],
-            "variance": ob.variance[v, u],
-            "near": ob.near[v, u],
-            "far": ob.far[v, u],
-            "tilt_pair": tilt_pair[v, u],
-            "pan_pair": pan_pair[v, u],
-            "ratio": ratio[v, u].astype(np.float32),
+            "range_m": image.range_m.ravel()[flat].astype(np.float32),
+            "x": pts[:, 0],
+            "y": pts[:, 1],
+            "z": pts[:, 2],
+            "tilt": ob.tilt.ravel()[flat],
+            "pan": ob.pan.ravel()[flat],
+            "variance": ob.variance.ravel()[flat],
+            "near": ob.near.ravel()[flat],
+            "far": ob.far.ravel()[flat],
+            "tilt_pair": tilt_next,
+            "pan_pair": pan_next,
+            "ratio": ratio,
         },
         columns=BOUNDARY_COLUMNS,
     )

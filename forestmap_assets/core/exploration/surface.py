@@ -10,7 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.exploration.occlusion import boundaries_table, detect_occlusions
+from forestmap_assets.core.exploration import _surface_kernels as kernels
+from forestmap_assets.core.exploration.occlusion import (
+    boundaries_table,
+    detect_occlusions,
+    point_source,
+)
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.core.geometry import transform_points
 from forestmap_assets.params.men import OcclusionConfig
@@ -19,19 +24,6 @@ SURFACE_COLUMNS = ["ix", "iy", "iz", "n_points", "n_filled"]
 
 
 # ---- observed surface (per scan) ----------------------------------------------------------------
-def _segment_samples(p0: np.ndarray, p1: np.ndarray, step_m: float) -> np.ndarray:
-    """Interior points every <= ``step_m`` along segments ``p0 -> p1`` (ends excluded)."""
-    length = np.linalg.norm(p1 - p0, axis=1)
-    k = np.maximum(np.ceil(length / step_m).astype(np.int64) - 1, 0)
-    if k.sum() == 0:
-        return np.zeros((0, 3))
-    seg = np.repeat(np.arange(len(k)), k)
-    start = np.cumsum(k) - k
-    j = np.arange(k.sum()) - np.repeat(start, k) + 1
-    t = (j / (k[seg] + 1))[:, None]
-    return p0[seg] + t * (p1[seg] - p0[seg])
-
-
 def observed_surface(
     image: RangeImage,
     tilt_pair: np.ndarray,
@@ -44,39 +36,46 @@ def observed_surface(
 ) -> pd.DataFrame:
     """Voxelised observed surface of one scan in its levelled frame (``SURFACE_COLUMNS``).
 
-    ``n_points``: returns in the voxel; ``n_filled``: samples every ``fill_step_m`` on segments
-    between neighbouring returns (tilt and pan pairs) not flagged as occlusion boundaries and
-    shorter than ``max_fill_m`` (inferred). ``tilt_pair`` / ``pan_pair`` are the flagged pair
-    masks of :func:`~.occlusion.detect_occlusions`. Voxel ``(ix, iy, iz)`` covers
-    ``[ix*voxel_m, (ix+1)*voxel_m)`` etc."""
-    xyz = image.xyz
-    valid = image.valid
-    measured = xyz[valid]
-    fills = []
-    for axis, flagged in ((0, tilt_pair), (1, pan_pair)):
-        if axis == 0:
-            a, b, va, vb = xyz[:-1], xyz[1:], valid[:-1], valid[1:]
-        elif wrap:
-            a, b, va, vb = xyz, np.roll(xyz, -1, axis=1), valid, np.roll(valid, -1, axis=1)
-        else:
-            a, b, va, vb = xyz[:, :-1], xyz[:, 1:], valid[:, :-1], valid[:, 1:]
-        ok = va & vb & ~flagged
-        p0, p1 = a[ok], b[ok]
-        length = np.linalg.norm(p1 - p0, axis=1)
-        long = (length > fill_step_m) & (length <= max_fill_m)
-        fills.append(_segment_samples(p0[long], p1[long], fill_step_m))
-    filled = np.concatenate(fills) if fills else np.zeros((0, 3))
-    pts = np.concatenate([measured, filled])
-    is_fill = np.concatenate([np.zeros(len(measured), bool), np.ones(len(filled), bool)])
-    if len(pts) == 0:
+    ``n_points``: returns in the voxel; ``n_filled``: interior samples every <= ``fill_step_m``
+    on segments between neighbouring returns (tilt and pan pairs) not flagged as occlusion
+    boundaries, longer than ``fill_step_m`` and not longer than ``max_fill_m`` (inferred).
+    ``tilt_pair`` / ``pan_pair`` are the flagged pair masks of
+    :func:`~.occlusion.detect_occlusions`. Voxel ``(ix, iy, iz)`` covers
+    ``[ix*voxel_m, (ix+1)*voxel_m)`` etc.; rows sorted by voxel.
+
+    Two passes of :func:`~._surface_kernels.surface_walk` over the returns and samples (their
+    bounds, then one key per point: voxel index and fill bit), a radix sort of the keys and a
+    count pass; no point array is built."""
+    xyz, trig = point_source(image)
+    rng = image.range_m
+    rows, cols = rng.shape
+    walks = (
+        (-1, np.zeros((0, 0), dtype=bool), 0),
+        (0, np.asarray(tilt_pair, dtype=bool), max(rows - 1, 0)),
+        (1, np.asarray(pan_pair, dtype=bool), cols if wrap else max(cols - 1, 0)),
+    )
+
+    def walk(lo, hi, span, keys):
+        n = 0
+        for axis, flagged, n_pairs in walks:
+            n = kernels.surface_walk(
+                xyz, rng, trig, flagged, axis, n_pairs, fill_step_m, max_fill_m, voxel_m,
+                lo, hi, span, keys, n,
+            )  # fmt: skip
+        return n
+
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    n = walk(lo, hi, lo, np.zeros(0, dtype=np.int64))
+    if n == 0:
         return pd.DataFrame({c: pd.Series(dtype="int32") for c in SURFACE_COLUMNS})
-    ijk = np.floor(pts / voxel_m).astype(np.int64)
-    lo = ijk.min(axis=0)
-    span = ijk.max(axis=0) - lo + 1
-    key = ((ijk[:, 0] - lo[0]) * span[1] + (ijk[:, 1] - lo[1])) * span[2] + (ijk[:, 2] - lo[2])
-    uniq, inv = np.unique(key, return_inverse=True)
-    n_points = np.bincount(inv, weights=~is_fill, minlength=len(uniq)).astype(np.int32)
-    n_filled = np.bincount(inv, weights=is_fill, minlength=len(uniq)).astype(np.int32)
+    lo, hi = np.floor(lo / voxel_m).astype(np.int64), np.floor(hi / voxel_m).astype(np.int64)
+    span = hi - lo + 1
+    top = 2 * int(span[0]) * int(span[1]) * int(span[2])  # keys < top
+    if top >= 2**63:
+        raise ValueError(f"observed surface: {span.tolist()} voxels of {voxel_m} m is too large")
+    keys = np.empty(n, dtype=np.int64)
+    walk(lo, hi, span, keys)
+    uniq, n_points, n_filled = kernels.voxel_counts(kernels.radix_sort(keys, top.bit_length()))
     iz = uniq % span[2] + lo[2]
     rest = uniq // span[2]
     iy = rest % span[1] + lo[1]
@@ -140,12 +139,8 @@ def scan_surface(image, config: OcclusionConfig) -> dict[str, pd.DataFrame]:
             "voxel_m": [config.surface_voxel_m],
             "azimuth_step_deg": [image.azimuth_step_deg],
             "elevation_step_deg": [image.elevation_step_deg],
-            "median_tilt_threshold": [
-                float(np.median(ob.tilt_threshold)) if ob.tilt_threshold.size else np.nan
-            ],
-            "median_pan_threshold": [
-                float(np.median(ob.pan_threshold)) if ob.pan_threshold.size else np.nan
-            ],
+            "median_tilt_threshold": [ob.median_threshold("tilt")],
+            "median_pan_threshold": [ob.median_threshold("pan")],
             "valid_pixels": [int(image.valid.sum())],
             "boundary_pixels": [int(ob.boundary.sum())],
         }
