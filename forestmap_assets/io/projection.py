@@ -25,9 +25,20 @@ from __future__ import annotations
 import numpy as np
 
 from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.io._projection_kernels import (
+    Scratch,
+    fractions,
+    mark,
+    neighbour_shares,
+    occupancy,
+    place,
+    points_at,
+    region_counts,
+)
 from forestmap_assets.io.angular_grid import (
     _estimate_steps,
     _fit_axis,
+    _fit_sample,
     _unwrapped_azimuth,
     _window_subset,
     _xyz,
@@ -113,13 +124,19 @@ def neighbour_fill(valid: np.ndarray) -> float:
     return float(np.mean(hits[m] / there[m]))
 
 
-def _filled(valid: np.ndarray, min_fill: float) -> float:
-    """The fill ratio, lowered to ``min_fill * neighbour_fill / _NEIGHBOUR_FILL`` when that is
-    less: a step reaches ``min_fill`` when both the region and the returns' neighbourhoods are
-    filled enough (inferred: the scan-line segmentation, spec 2.2, breaks a run at every hole,
-    and a thinned scanner grid at its own step, 50 % filled, loses half its stems)."""
-    f = fill_ratio(valid)
-    return min(f, min_fill * neighbour_fill(valid) / _NEIGHBOUR_FILL) if f >= min_fill else f
+def _filled(state: np.ndarray, rows: int, cols: int, min_fill: float) -> float:
+    """The fill ratio of the pixels ``state != 0`` (flat, ``rows x cols``), lowered to
+    ``min_fill * neighbour_fill / _NEIGHBOUR_FILL`` when that is less: a step reaches
+    ``min_fill`` when both the region and the returns' neighbourhoods are filled enough
+    (inferred: the scan-line segmentation, spec 2.2, breaks a run at every hole, and a thinned
+    scanner grid at its own step, 50 % filled, loses half its stems). :func:`fill_ratio` and
+    :func:`neighbour_fill` in two passes over the image."""
+    n_filled, n_region = region_counts(state, rows, cols)
+    f = n_filled / n_region if n_region else 0.0
+    if f < min_fill:
+        return f
+    shares = neighbour_shares(state, rows, cols, n_filled)  # neighbour_fill's, in its order
+    return min(f, min_fill * float(np.mean(shares)) / _NEIGHBOUR_FILL)
 
 
 def _dilated(m: np.ndarray) -> np.ndarray:  # 3 x 3 dilation of a boolean image
@@ -132,43 +149,56 @@ def _dilated(m: np.ndarray) -> np.ndarray:  # 3 x 3 dilation of a boolean image
     return out
 
 
-def _pixels(a, el, off_a, step_a, off_e, step_e) -> tuple[np.ndarray, np.ndarray, int, int, int, int]:
-    """Fractional column and row of each point from 0, grid indices of column and row 0, rows
-    and columns of the image (in place after one copy each: 30 M floats)."""
-    fu, fv = a - off_a, np.negative(el)
-    fu /= step_a
-    fv -= off_e
-    fv /= step_e
-    u0, v0 = int(np.rint(fu.min())), int(np.rint(fv.min()))
-    fu -= u0
-    fv -= v0
-    return fu, fv, u0, v0, int(np.rint(fv.max())) + 1, int(np.rint(fu.max())) + 1
+def _dims(bounds, off_a, step_a, off_e, step_e) -> tuple[int, int, int, int]:
+    """Grid indices of column and row 0, rows and columns of the image of angles within
+    ``bounds`` (az min, az max, el min, el max) on the grid ``(off_a, step_a, off_e, step_e)``:
+    the extreme fractional columns and rows of :func:`_pixels` (its maps are monotone)."""
+    a_lo, a_hi, e_lo, e_hi = bounds
+    u0, v0 = int(np.rint((a_lo - off_a) / step_a)), int(np.rint((-e_hi - off_e) / step_e))
+    rows = int(np.rint((-e_lo - off_e) / step_e - v0)) + 1
+    return u0, v0, rows, int(np.rint((a_hi - off_a) / step_a - u0)) + 1
 
 
-def _filling_steps(a, el, steps, min_fill: float, max_pixels: int) -> tuple[float, float]:
+def _pixels(a, el, bounds, off_a, step_a, off_e, step_e, scratch: Scratch):
+    """Fractional column ``(a - off_a) / step_a - u0`` and row ``(-el - off_e) / step_e - v0``
+    of each point (``scratch``'s), grid indices ``u0, v0`` of column and row 0, rows and
+    columns of the image (:func:`_dims`)."""
+    u0, v0, rows, cols = _dims(bounds, off_a, step_a, off_e, step_e)
+    fu, fv = scratch.get("fu", a.size, np.float64), scratch.get("fv", a.size, np.float64)
+    fractions(a, el, off_a, step_a, u0, off_e, step_e, v0, fu, fv)
+    return fu, fv, u0, v0, rows, cols
+
+
+def _filling_steps(a, el, steps, min_fill: float, max_pixels: int,
+                   scratch: Scratch | None = None) -> tuple[float, float]:
     """``steps`` scaled (both axes alike) to the finest scale whose image fills ``min_fill`` of
     its scanned region (:func:`fill_ratio`; above ``_FILL_POINTS`` points on windows): grown by
     the factor a Poisson fill ``1 - exp(-lambda s^2)`` predicts until it fills, then bisected
     (geometrically, to ``_FILL_TOL``) between the last scale short of ``min_fill`` and the
     first that reaches it, so the step stays as fine as the fill allows (inferred: a coarser
     step keeps fewer points per stem)."""
+    scratch = Scratch() if scratch is None else scratch
     sub = _window_subset(a, _FILL_POINTS, 8, np.random.default_rng(2))
     a, el = a[sub], el[sub]
+    bounds = float(a.min()), float(a.max()), float(el.min()), float(el.max())
 
     def fill(scale: float) -> float:  # the fill does not depend on the grid's offsets
-        fu, fv, _, _, rows, cols = _pixels(a, el, 0.0, steps[0] * scale, 0.0, steps[1] * scale)
+        sa, se = steps[0] * scale, steps[1] * scale
+        u0, v0, rows, cols = _dims(bounds, 0.0, sa, 0.0, se)
         if rows * cols > max_pixels:
             return -float(rows * cols)
         if min(rows, cols) < 3:
             return 1.0
-        return _filled(_occupied(fu, fv, rows, cols), min_fill)
+        state = occupancy(a, el, sa, se, u0, v0, rows, cols, _MOVE_PX, scratch)
+        return _filled(state, rows, cols, min_fill)
 
     lo, hi = 1.0, None  # lo: a scale short of min_fill (or the fitted step); hi: one reaching it
     if fill(1.0) >= min_fill:  # the scanner's own grid
         return steps
     # first guess: the step of the points spread evenly over the occupied 1-degree cells
-    cells = np.unique(np.floor(a).astype(np.int64) * 400 + np.floor(el + 90.0).astype(np.int64))
-    scale = max(float(np.sqrt(cells.size / a.size / (steps[0] * steps[1]))), 1.25)
+    cells = np.count_nonzero(np.bincount(np.floor(a).astype(np.int64) * 400
+                                         + np.floor(el + 90.0).astype(np.int64)))
+    scale = max(float(np.sqrt(cells / a.size / (steps[0] * steps[1]))), 1.25)
     for _ in range(16):
         f = fill(scale)
         if f >= min_fill:
@@ -197,85 +227,34 @@ def _filling_steps(a, el, steps, min_fill: float, max_pixels: int) -> tuple[floa
     return steps[0] * hi, steps[1] * hi
 
 
-def _occupied(fu, fv, rows, cols) -> np.ndarray:
-    """(rows, cols) mask of the pixels :func:`_place` fills (cheaply, for the fill search): a
-    point's own pixel, or, for a point sharing its pixel, the nearest pixel on its offset's side
-    within ``_MOVE_PX`` of its direction when that one holds no point of its own."""
-    u, v = np.rint(fu).astype(np.int32), np.rint(fv).astype(np.int32)
-    flat = v * cols + u
-    count = np.bincount(flat, minlength=rows * cols)
-    mask = count > 0
-    extra = np.flatnonzero(count[flat] > 1)
-    du, dv = fu[extra] - u[extra], fv[extra] - v[extra]
-    side = np.abs(du) >= np.abs(dv)  # the nearer neighbour: beside (else above/below)
-    dist = np.where(side, np.hypot(1 - np.abs(du), dv), np.hypot(du, 1 - np.abs(dv)))
-    tu = u[extra] + np.where(side, np.sign(du), 0).astype(np.int32)
-    tv = v[extra] + np.where(side, 0, np.sign(dv)).astype(np.int32)
-    ok = (dist <= _MOVE_PX) & (tu >= 0) & (tu < cols) & (tv >= 0) & (tv < rows)
-    mask[tv[ok] * cols + tu[ok]] = True
-    return mask.reshape(rows, cols)
-
-
-def _place(fu, fv, r, rows, cols) -> np.ndarray:
+def _place(fu, fv, r32, rows, cols, scratch: Scratch) -> np.ndarray:
     """Pixel (flat index; -1: none) of each point (fractional column ``fu``, row ``fv``). A
     pixel keeps its front point (within ``_FRONT_M`` of the nearest: first return, spec 1.1)
     nearest its centre (inferred: the nearest of k noisy ranges is ~1 sigma short). A point left
     out may fill an empty pixel of the three on its offset's side within ``_MOVE_PX`` of its
     direction (jitter pushed it over the border; a second return behind the first stays)."""
-    u, v = np.rint(fu).astype(np.int32), np.rint(fv).astype(np.int32)
-    flat = v * cols + u  # < max_pixels < 2**31
-    pix = np.full(r.size, -1, dtype=np.int32)
-    r32 = np.asarray(r, dtype=np.float32)
-    best = np.full(rows * cols, np.inf, dtype=np.float32)
-    np.minimum.at(best, flat, r32)
-    off2 = ((fu - u) ** 2 + (fv - v) ** 2 + 1e-6 * r32).astype(np.float32)  # ties: nearest
-    keep = nearest_per_pixel(flat, np.where(r32 <= best[flat] + _FRONT_M, off2, np.inf))
-    pix[keep] = flat[keep]
-    taken = np.zeros((rows, cols), dtype=bool).reshape(-1)
-    taken[flat[keep]] = True
-    near = _dilated(~taken.reshape(rows, cols))  # pixels next to an empty one
-    lose = np.flatnonzero(pix < 0)
-    lose = lose[near.reshape(-1)[flat[lose]]]
-    du, dv = (fu[lose] - u[lose]).astype(np.float32), (fv[lose] - v[lose]).astype(np.float32)
-    su, sv = np.where(du >= 0, 1, -1).astype(np.int8), np.where(dv >= 0, 1, -1).astype(np.int8)
-    dist = np.stack([np.hypot(1 - abs(du), dv), np.hypot(du, 1 - abs(dv)),
-                     np.hypot(1 - abs(du), 1 - abs(dv))])  # beside, above/below, diagonal
-    order = np.argsort(dist, axis=0).astype(np.int8)
-    for rank in range(3):
-        c = order[rank]
-        tu = u[lose] + np.where(c == 1, 0, su)
-        tv = v[lose] + np.where(c == 0, 0, sv)
-        ok = np.take_along_axis(dist, c[None].astype(np.int64), 0)[0] <= _MOVE_PX
-        ok &= (tu >= 0) & (tu < cols) & (tv >= 0) & (tv < rows)
-        tf = np.where(ok, tv * cols + tu, 0)
-        idx = np.flatnonzero(ok & ~taken[tf])
-        won = idx[nearest_per_pixel(tf[idx], r[lose[idx]])]
-        pix[lose[won]] = tf[won]
-        taken[tf[won]] = True
-        rest = np.ones(lose.size, dtype=bool)
-        rest[won] = False
-        lose, du, dv, su, sv = lose[rest], du[rest], dv[rest], su[rest], sv[rest]
-        dist, order = dist[:, rest], order[:, rest]
-    return pix
+    return place(fu, fv, r32, rows, cols, np.float32(_FRONT_M), np.float32(_MOVE_PX), scratch)
 
 
-def _grid(a, el, given, min_step_deg, min_fill, max_pixels):
+def _grid(a, el, given, min_step_deg, min_fill, max_pixels, scratch):
     """``(step_a, step_e, offsets)`` of the image: the ``given`` step, or the fitted grid
     coarsened to ``min_fill``; no step finer than ``min_step_deg``; ``offsets(step_a, step_e)``
     the grid's (az, el) offsets."""
     floor = max(float(min_step_deg or 0.0), 0.0)
+    sample = _fit_sample(a, el)  # one draw for every fit
 
     def offsets(sa: float, se: float) -> tuple[float, float]:
         if fitted is not None and (sa, se) == fitted[1::2]:
             return fitted[0], fitted[2]
-        return _fit_axis(a, sa, refine=False)[0], _fit_axis(-el, se, refine=False)[0]
+        return _fit_axis(sample[0], sa, refine=False)[0], _fit_axis(sample[1], se, refine=False)[0]
 
     fitted = None
     if given is None:
-        fitted = _estimate_steps(a, el)
+        fitted = _estimate_steps(a, el, sample)
         step_a, step_e = max(fitted[1], floor), max(fitted[3], floor)
         if min_fill > 0:
-            step_a, step_e = _filling_steps(a, el, (step_a, step_e), min_fill, max_pixels)
+            step_a, step_e = _filling_steps(a, el, (step_a, step_e), min_fill, max_pixels,
+                                            scratch)
     else:
         step_a, step_e = (max(s, floor) for s in _step_pair(given))
     return step_a, step_e, offsets
@@ -318,21 +297,25 @@ def project_angles(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: 
     del az
     if angular_step_deg is None and r.size < 2:
         raise ValueError("cannot estimate the angular step from fewer than 2 points")
-    step_a, step_e, offsets = _grid(a, el, angular_step_deg, min_step_deg, min_fill, max_pixels)
+    scratch = Scratch()
+    step_a, step_e, offsets = _grid(a, el, angular_step_deg, min_step_deg, min_fill, max_pixels,
+                                    scratch)
+    r32 = np.asarray(r, dtype=np.float32)
+    bounds = float(a.min()), float(a.max()), float(el.min()), float(el.max())
     for _ in range(8):  # an estimated step: grown by 5 % while short of min_fill (inferred)
         off_a, off_e = offsets(step_a, step_e)
-        fu, fv, u0, v0, rows, cols = _pixels(a, el, off_a, step_a, off_e, step_e)
+        fu, fv, u0, v0, rows, cols = _pixels(a, el, bounds, off_a, step_a, off_e, step_e, scratch)
         if rows * cols > max_pixels:
             raise ValueError(
                 f"projection would need {rows} x {cols} pixels (angular step {step_a:.4g} x "
                 f"{step_e:.4g} deg); give angular_step_deg"
             )
-        pix = _place(fu, fv, r, rows, cols)
+        pix = _place(fu, fv, r32, rows, cols, scratch)
         if angular_step_deg is not None or min_fill <= 0 or min(rows, cols) < 3:
             break
-        filled = np.zeros(rows * cols, dtype=bool)
-        filled[pix[pix >= 0]] = True
-        if _filled(filled.reshape(rows, cols), min_fill) >= min_fill:
+        filled = scratch.get("filled", rows * cols, np.uint8)
+        mark(pix, filled)
+        if _filled(filled, rows, cols, min_fill) >= min_fill:
             break
         step_a, step_e = step_a * 1.05, step_e * 1.05
     azimuth = origin + off_a + (u0 + np.arange(cols)) * step_a
@@ -360,9 +343,9 @@ def project_angles(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: 
 
 def _points(r, az_deg, el_deg) -> np.ndarray:
     """Scanner-frame points (n, 3) at ranges ``r`` along their own azimuth and elevation."""
-    az, el = np.radians(az_deg), np.radians(el_deg)
-    rc = np.asarray(r, dtype=np.float64) * np.cos(el)
-    return np.column_stack([rc * np.cos(az), rc * np.sin(az), r * np.sin(el)])
+    out = np.empty((np.size(r), 3))
+    points_at(r, az_deg, el_deg, out)
+    return out
 
 
 def project_to_range_image(

@@ -340,7 +340,7 @@ def read_open3d(path: Path, angular_step_deg, to_scanner=None) -> RangeImage:
         raise BadScan(f"no points ({said}unreadable or empty point cloud)")
     if got != n:
         raise BadScan(count_damage(n, got))
-    xyz = pc.point.positions.numpy().astype(np.float64)
+    xyz = np.asarray(pc.point.positions.numpy(), dtype=np.float64)  # a view (it keeps the tensor)
     rgb = intensity = None
     if "colors" in pc.point:
         c = pc.point.colors.numpy()
