@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import base64
 import hashlib
-import io
 import json
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -237,18 +236,15 @@ def picture_metadata(picture) -> MetadataValue:
     """A :class:`~forestmap_assets.outputs.figures.common.Picture` as inline Markdown for the
     Dagster UI: its caption, then the image."""
     data = base64.b64encode(picture.png).decode()
-    return MetadataValue.md(f"{picture.caption}\n\n![image](data:image/png;base64,{data})")
+    caption = f"{picture.caption}\n\n" if picture.caption else ""
+    return MetadataValue.md(f"{caption}![image](data:image/png;base64,{data})")
 
 
 def png_metadata(fig) -> MetadataValue:
-    """A matplotlib figure as an inline Markdown image for the Dagster UI."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=80)  # laid out already; a tight box would draw it twice
-    import matplotlib.pyplot as plt
+    """A (pyplot-free) matplotlib figure as an inline Markdown image for the Dagster UI."""
+    from forestmap_assets.outputs.figures.common import Picture, png_bytes
 
-    plt.close(fig)
-    data = base64.b64encode(buf.getvalue()).decode()
-    return MetadataValue.md(f"![image](data:image/png;base64,{data})")
+    return picture_metadata(Picture(png_bytes(fig, dpi=80), ""))
 
 
 # --- per-scan asset checks (circle_models, cylinder_segments) -------------------------------
