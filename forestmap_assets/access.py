@@ -41,11 +41,12 @@ def load_asset(name: str, *, campaign: str | Path | Campaign, scan: str | None =
         return table.to_pandas()
     if bundle_path.exists():
         return read_bundle(bundle_path)
-    if scan is None and name in PAIR_STAGES and base.is_dir():  # every pair partition (issue 17)
+    if scan is None and name in PAIR_STAGES:  # every pair partition (issue 17)
         from forestmap_assets.assets.pairs import combine_pairs
 
-        parts = {p.name[: -len(".bundle")]: read_bundle(p) for p in base.iterdir() if p.name.endswith(".bundle")}
-        if parts:
+        parts = {p.name[: -len(".bundle")]: read_bundle(p) for p in base.iterdir()
+                 if p.name.endswith(".bundle")} if base.is_dir() else {}
+        if parts or (base.parent / "candidate_pairs.parquet").exists():  # none searched: {}
             return combine_pairs(parts)
     what = f"{name}[{scan}]" if scan is not None else name
     raise FileNotFoundError(f"{what} of campaign {_campaign_key(campaign)!r} is not in the store {base.parent} (run `forestmap run` first)")

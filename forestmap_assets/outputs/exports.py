@@ -185,7 +185,8 @@ def write_exports(
     written: list[Path] = []
     omap = load_asset("optimal_map", campaign=campaign)
     poses = omap["poses"]
-    regs = load_asset("refined_registrations", campaign=campaign)["registrations"]  # what fed the map
+    regs = load_asset("refined_registrations", campaign=campaign).get(  # what fed the map
+        "registrations", pd.DataFrame(columns=REGISTRATION_COLUMNS))  # none for a single scan
     residuals = load_asset("residual_checks", campaign=campaign)
     trees = load_asset("tree_list", campaign=campaign)
     integrated = load_asset("integrated_map", campaign=campaign)
