@@ -94,6 +94,40 @@ def _local(path: UPath) -> bool:
     return path.protocol in ("", "file", "local")
 
 
+# The last tagged table (a range image) this process wrote or read, with the file's identity:
+# the per-scan stages of one scan's run all read its range image, so a run in one process reads
+# it once (issue 18: 0.3-0.6 s a read on a 14 M-pixel image, and its decoded image is reused by
+# RangeImage.from_table). Cleared by forget_recent() when a run ends.
+_RECENT: dict[str, Any] = {}
+
+
+def _identity(path: UPath) -> tuple | None:
+    if not _local(path):
+        return None
+    try:
+        st = os.stat(path.path)
+    except OSError:
+        return None
+    return (os.path.realpath(path.path), st.st_ino, st.st_mtime_ns, st.st_size)
+
+
+def _remember(path: UPath, table: pa.Table) -> None:
+    if (table.schema.metadata or {}).get(b"forestmap.kind") and (ident := _identity(path)) is not None:
+        _RECENT.clear()
+        _RECENT.update(identity=ident, table=table)
+
+
+def _recalled(path: UPath) -> pa.Table | None:
+    if _RECENT and (ident := _identity(path)) is not None and _RECENT["identity"] == ident:
+        return _RECENT["table"]
+    return None
+
+
+def forget_recent() -> None:
+    """Drop the remembered table (the end of a run in a long-lived worker process)."""
+    _RECENT.clear()
+
+
 def _remove_tree(path: UPath) -> None:
     if _local(path):
         import shutil
@@ -250,12 +284,17 @@ class ParquetIOManager(UPathIOManager):
             write_bundle_atomic(obj, self._bundle_path(path))
         else:
             write_table_atomic(obj, self._table_path(path))
+            if isinstance(obj, pa.Table):
+                _remember(self._table_path(path), obj)
 
     def load_from_path(self, context: InputContext, path: UPath) -> Any:
         table_path = self._table_path(path)
+        if (table := _recalled(table_path)) is not None:
+            return table
         if table_path.exists():
             table = read_table(table_path)
             if (table.schema.metadata or {}).get(b"forestmap.kind"):
+                _remember(table_path, table)
                 return table  # keep Arrow metadata (e.g. range images)
             return table.to_pandas()
         bundle_path = self._bundle_path(path)

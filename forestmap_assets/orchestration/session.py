@@ -24,6 +24,7 @@ from dagster._core.execution.api import (
 
 from forestmap_assets.assets.common import asset_key, job_name
 from forestmap_assets.io.campaign import Campaign, load_campaign
+from forestmap_assets.io.store import forget_recent
 from forestmap_assets.orchestration.events import step_failure_reason
 from forestmap_assets.orchestration.instance import (
     sync_pair_partitions,
@@ -203,6 +204,7 @@ class Session:
                 err = getattr(event.event_specific_data, "error", None)
                 text = err.message if err is not None and err.message else event.message
                 run_failure = (text or "run failed").strip().splitlines()[0]
+        forget_recent()  # the run's range image, remembered by the store (io/store.py)
         done = self.instance.get_run_by_id(run.run_id)
         ok = bool(done and done.is_success)
         if not ok:

@@ -17,6 +17,7 @@ in the scanner's own frame ``p_s`` is rotated into the horizontally levelled sub
 from __future__ import annotations
 
 import json
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +30,16 @@ def levelling_rotation(roll_deg: float, pitch_deg: float) -> np.ndarray:
     rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
     ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
     return ry @ rx
+
+
+# The last image decoded from a table, while that table lives: every per-scan stage of one scan's
+# run decodes the same stored range image (the store hands the same table over, io/store.py).
+_DECODED: list = []
+
+
+def _forget_decoded(ref: weakref.ref) -> None:
+    if _DECODED and _DECODED[0][0] is ref:
+        _DECODED.clear()
 
 
 def spherical_to_xyz(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: np.ndarray) -> np.ndarray:
@@ -115,6 +126,7 @@ class RangeImage:
                 pts = spherical_to_xyz(self.range_m, self.azimuth_deg, self.elevation_deg)
             if any(self.tilt_deg):
                 pts = pts @ levelling_rotation(*self.tilt_deg).T
+            pts.flags.writeable = self.range_m.flags.writeable  # a shared image stays read-only
             self._xyz = pts
         return self._xyz
 
@@ -153,28 +165,41 @@ class RangeImage:
 
     @classmethod
     def from_table(cls, table: pa.Table) -> RangeImage:
+        """The organised image of a :meth:`to_table` table (one scatter per channel through
+        the pixels' flat indices). Read-only, and shared: the same table gives the same image
+        object (its levelled points computed once for all the stages of a run)."""
+        if _DECODED and _DECODED[0][0]() is table:
+            return _DECODED[0][1]
+        from forestmap_assets.core.features._image_kernels import scatter_points
+
         meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
         az = np.asarray(json.loads(meta["azimuth_deg"]), dtype=np.float64)
         el = np.asarray(json.loads(meta["elevation_deg"]), dtype=np.float64)
         tilt = tuple(json.loads(meta.get("tilt_deg", "[0, 0]")))
         shape = (el.size, az.size)
-        v = table.column("row").to_numpy()
-        u = table.column("col").to_numpy()
-        rng = np.full(shape, np.nan, dtype=np.float32)
-        rng[v, u] = table.column("range_m").to_numpy()
+        flat = table.column("row").to_numpy().astype(np.int64) * shape[1]
+        flat += table.column("col").to_numpy()
+
+        def channel(name: str, fill, dtype) -> np.ndarray:
+            out = np.full(shape[0] * shape[1], fill, dtype=dtype)
+            out[flat] = table.column(name).to_numpy()
+            return out.reshape(shape)
+
+        rng = channel("range_m", np.nan, np.float32)
         intensity = rgb = None
         if json.loads(meta.get("has_intensity", "false")):
-            intensity = np.full(shape, np.nan, dtype=np.float32)
-            intensity[v, u] = table.column("intensity").to_numpy()
+            intensity = channel("intensity", np.nan, np.float32)
         if json.loads(meta.get("has_rgb", "false")):
-            rgb = np.zeros(shape + (3,), dtype=np.uint8)
-            for i, name in enumerate("rgb"):
-                rgb[v, u, i] = table.column(name).to_numpy()
+            rgb = np.stack([channel(name, 0, np.uint8) for name in "rgb"], axis=-1)
         points = None
         if json.loads(meta.get("has_points", "false")):  # back to the scanner frame
-            lev = np.column_stack([table.column(c).to_numpy().astype(np.float64) for c in "xyz"])
-            if any(tilt):
-                lev = lev @ levelling_rotation(*tilt)
-            points = np.full(shape + (3,), np.nan, dtype=np.float32)
-            points[v, u] = lev
-        return cls(rng, az, el, (float(tilt[0]), float(tilt[1])), intensity, rgb, points)
+            rot = levelling_rotation(*tilt) if any(tilt) else np.eye(3)
+            points = np.full((shape[0] * shape[1], 3), np.nan, dtype=np.float32)
+            scatter_points(flat, *(table.column(c).to_numpy() for c in "xyz"), rot, points)
+            points = points.reshape(shape + (3,))
+        image = cls(rng, az, el, (float(tilt[0]), float(tilt[1])), intensity, rgb, points)
+        for array in (image.range_m, image.azimuth_deg, image.elevation_deg, intensity, rgb, image.points):
+            if array is not None:
+                array.flags.writeable = False
+        _DECODED[:] = [(weakref.ref(table, _forget_decoded), image)]
+        return image

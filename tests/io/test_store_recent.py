@@ -1,0 +1,45 @@
+"""A run's per-scan stages read its range image once (issue 18): the store hands the same Arrow
+table over while the file is unchanged, and the image decoded from it is shared and read-only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from upath import UPath
+
+from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.io.store import ParquetIOManager, forget_recent
+
+
+def _image(seed: int) -> RangeImage:
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(2.0, 25.0, (30, 60)).astype(np.float32)
+    r[rng.random(r.shape) < 0.2] = np.nan
+    pts = rng.normal(size=(30, 60, 3)).astype(np.float32)
+    return RangeImage(r, np.arange(60.0), 15.0 - np.arange(30.0), (0.8, -1.2), points=pts)
+
+
+def test_range_image_read_once_per_file_version(tmp_path):
+    io = ParquetIOManager(base_path=UPath(tmp_path))
+    path = UPath(tmp_path) / "range_images" / "A"
+    first = _image(1).to_table()
+    io.dump_to_path(None, first, path)
+    assert io.read_stored(["range_images"], "A") is first  # just written: not read back
+    forget_recent()
+    read = io.read_stored(["range_images"], "A")
+    assert read is not first and read.equals(first)
+    assert io.read_stored(["range_images"], "A") is read
+
+    image = RangeImage.from_table(read)
+    assert RangeImage.from_table(read) is image
+    assert not image.range_m.flags.writeable and not image.xyz.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        image.range_m[0, 0] = 1.0
+
+    io.dump_to_path(None, _image(2).to_table(), path)  # a new version of the file
+    forget_recent()
+    again = io.read_stored(["range_images"], "A")
+    assert again is not read and not again.equals(read)
+    other = RangeImage.from_table(again)
+    assert other is not image
+    assert np.array_equal(other.range_m, _image(2).range_m, equal_nan=True)
