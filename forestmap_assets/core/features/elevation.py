@@ -2,7 +2,8 @@
 
 * :func:`elevation_grid`: per scan, the lowest (indoor, forest) or highest (parking lot) beam
   hit z in every ``cell_m`` xy cell of the levelled scan frame, as a sparse table
-  ``ix, iy, z, n``; cell ``(ix, iy)`` covers ``[ix*cell, (ix+1)*cell) x [iy*cell, (iy+1)*cell)``.
+  ``ix, iy, z, n``; cell ``(ix, iy)`` covers ``[ix*cell, (ix+1)*cell) x [iy*cell, (iy+1)*cell)``
+  (numba kernels in :mod:`forestmap_assets.core.features._elevation_kernels`, issue 18).
 * :func:`merge_elevation`: every scan's cells transformed into the global frame with its pose
   (rotation by the heading, xy translation, z offset) and combined by the same min/max rule.
 * :func:`render_grid`: the coarse 0.6 m rendering grid, each cell the mean of the 5 lowest
@@ -56,13 +57,24 @@ class ElevationGrid:
         )
 
 
+# (inferred, issue 18) Largest box of cells accumulated densely (12 bytes a cell), and at most
+# this many cells per used point beyond 2**20; larger boxes (far or stray points, no
+# ``max_distance_m``) go through a hash table whose size follows the occupied cells.
+DENSE_MAX_CELLS = 50_000_000
+DENSE_CELLS_PER_POINT = 4
+
+
 def _points(data: RangeImage | np.ndarray | pd.DataFrame) -> np.ndarray:
+    """The points as a C-contiguous (n, 3) float64 array, a view of a range image's levelled
+    ``xyz`` (NaN where no return) when possible; non-finite rows are left in (the kernels skip
+    them)."""
     if isinstance(data, RangeImage):
-        return data.xyz[data.valid]
-    if isinstance(data, pd.DataFrame):
-        return data[["x", "y", "z"]].to_numpy(dtype=np.float64)
-    pts = np.asarray(data, dtype=np.float64).reshape(-1, 3)
-    return pts[np.isfinite(pts).all(axis=1)]
+        pts = data.xyz.reshape(-1, 3)
+    elif isinstance(data, pd.DataFrame):
+        pts = data[["x", "y", "z"]].to_numpy(dtype=np.float64)
+    else:
+        pts = np.asarray(data, dtype=np.float64).reshape(-1, 3)
+    return np.ascontiguousarray(pts, dtype=np.float64)
 
 
 def _combine(
@@ -87,11 +99,16 @@ def elevation_grid(
     ``x, y, z`` in the levelled scan frame. Returns the sparse table ``ix, iy, z, n`` (``n``
     hits in the cell), sorted by ``iy, ix``. (inferred) ``max_distance_m`` limits the grid to
     ``|x|, |y| < max_distance_m`` around the sensor (the thesis' 600 x 600 cells over 60 m).
+    Points with a non-finite coordinate are skipped. Among equal lowest (highest) values the
+    first point's is kept, as by the stable sort of the former numpy formulation.
     """
+    from forestmap_assets.core.features import _elevation_kernels as kern
+
     pts = _points(data)
-    if max_distance_m is not None:
-        pts = pts[(np.abs(pts[:, 0]) < max_distance_m) & (np.abs(pts[:, 1]) < max_distance_m)]
-    if pts.shape[0] == 0:
+    limit = np.inf if max_distance_m is None else float(max_distance_m)
+    cell, highest = float(params.cell_m), params.mode == "highest"
+    count, x0, x1, y0, y1 = kern.cell_bounds(pts, cell, limit)
+    if count == 0:
         return pd.DataFrame(
             {
                 "ix": pd.Series(dtype="int64"),
@@ -100,20 +117,15 @@ def elevation_grid(
                 "n": pd.Series(dtype="int64"),
             }
         )
-    ij = np.floor(pts[:, :2] / params.cell_m).astype(np.int64)
-    lo = ij.min(axis=0)
-    span = ij.max(axis=0) - lo + 1
-    keys = (ij[:, 1] - lo[1]) * span[0] + (ij[:, 0] - lo[0])
-    uniq, z, n = _combine(keys, pts[:, 2], params.mode)
-    return pd.DataFrame(
-        {
-            "ix": uniq % span[0] + lo[0],
-            "iy": uniq // span[0] + lo[1],
-            "z": z.astype(np.float64),
-            "n": n.astype(np.int64),
-        },
-        columns=ELEVATION_COLUMNS,
-    )
+    nx, ny = int(x1) - int(x0) + 1, int(y1) - int(y0) + 1
+    dense_max = min(DENSE_MAX_CELLS, max(1 << 20, DENSE_CELLS_PER_POINT * int(count)))
+    if nx * ny <= dense_max and count < 2**31:
+        ix, iy, z, n = kern.dense_cells(pts, cell, limit, highest, x0, y0, nx, ny)
+    else:
+        ix, iy, z, n = kern.hashed_cells(pts, cell, limit, highest)
+        order = np.lexsort((ix, iy))
+        ix, iy, z, n = ix[order], iy[order], z[order], n[order]
+    return pd.DataFrame({"ix": ix, "iy": iy, "z": z, "n": n}, columns=ELEVATION_COLUMNS)
 
 
 def merge_elevation(
