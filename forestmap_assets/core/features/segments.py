@@ -16,17 +16,18 @@ Every row of the range image is a horizontal scan line. Each row is
 6. segments of adjacent rows whose column intervals overlap and whose ``r_mid`` differ by less
    than ``link_range_step_m`` are **linked** into vertical chains (spec 2.4).
 
-Everything is vectorised over the whole image (flattened rows, cumulative sums, a sparse-table
-max filter); there is no Python loop over rows or pixels.
+The whole-image passes (window widths, the sparse-table max filter, runs, widening, inlier
+counts, chain linking) are numba kernels in :mod:`._segment_kernels`; the per-run arithmetic
+left in numpy (chord widths, T_out) is vectorised over the runs. There is no Python loop over
+rows or pixels.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
+from forestmap_assets.core.features import _segment_kernels as K
 from forestmap_assets.core.features.range_image import RangeImage, levelling_rotation
 from forestmap_assets.params import SegmentationParams
 
@@ -67,54 +68,30 @@ def occluder_window(range_m: np.ndarray, elevation_deg: np.ndarray, azimuth_step
     (inferred: horizontal pitch of a row at elevation el). Capped at ``max_window_px``
     (inferred). No-return pixels get width 1.
     """
-    pitch = np.asarray(range_m, np.float64) * np.cos(np.radians(elevation_deg))[:, None]
-    pitch *= azimuth_step_rad
-    with np.errstate(invalid="ignore", divide="ignore"):
-        x = np.ceil(max_occluder_m / pitch + 1.0)
-    x = np.where(np.isfinite(x), x, 1.0)
-    x = np.clip(x, 1, max_window_px)
-    w = x.astype(np.int64)
-    return w + (w % 2 == 0)
+    r = np.asarray(range_m)
+    if r.dtype not in (np.float32, np.float64):
+        r = r.astype(np.float64)
+    cos_el = np.cos(np.radians(elevation_deg))[:, None]
+    shape = np.broadcast_shapes(r.shape, cos_el.shape)  # numpy broadcasting of r * cos_el
+    r = np.broadcast_to(r, shape).reshape(int(np.prod(shape[:-1])), shape[-1])
+    cos_rows = np.broadcast_to(cos_el, shape[:-1] + (1,)).reshape(-1)
+    w = K.occluder_window(r, cos_rows, float(azimuth_step_rad), float(max_occluder_m),
+                          float(max_window_px))
+    return w.reshape(shape)
 
 
 def blocking_max_filter(range_m: np.ndarray, window_px: np.ndarray) -> np.ndarray:
     """Row-wise max filter with a per-pixel odd window (spec 2.2 step 1).
 
-    No-return pixels are ignored inside windows and stay NaN. Uses a sparse table of
-    power-of-two running maxima, so the cost is O(pixels log(max window)).
+    No-return pixels are ignored inside windows and stay NaN. Uses a per-row sparse table of
+    power-of-two running maxima (numba kernel), so the cost is O(pixels log(max window)).
     """
-    r = np.where(np.isfinite(range_m), range_m, -np.inf).astype(np.float32)
-    rows, cols = r.shape
-    hw = (window_px - 1) // 2
-    hmax = int(hw.max()) if hw.size else 0
-    if hmax == 0:
-        return np.where(np.isfinite(range_m), range_m, np.nan).astype(np.float32)
-    pad = np.full((rows, cols + 2 * hmax), -np.inf, np.float32)
-    pad[:, hmax:hmax + cols] = r
-    levels = [pad]
-    k = 1
-    while 2 * k <= 2 * hmax + 1:
-        prev = levels[-1]
-        nxt = prev.copy()
-        nxt[:, :-k] = np.maximum(prev[:, :-k], prev[:, k:])
-        levels.append(nxt)
-        k *= 2
-    width = 2 * hw + 1
-    lev = np.floor(np.log2(width)).astype(np.int64)
-    span = np.left_shift(1, lev)
-    col = np.arange(cols)[None, :] + hmax
-    left = col - hw
-    right = col + hw - span + 1
-    out = np.empty((rows, cols), np.float32)
-    row_idx = np.broadcast_to(np.arange(rows)[:, None], (rows, cols))
-    for li, table in enumerate(levels):
-        sel = lev == li
-        if not sel.any():
-            continue
-        rr = row_idx[sel]
-        out[sel] = np.maximum(table[rr, left[sel]], table[rr, right[sel]])
-    out[~np.isfinite(range_m)] = np.nan
-    return out
+    r = np.asarray(range_m)
+    if r.dtype not in (np.float32, np.float64):
+        r = r.astype(np.float64)
+    if r.ndim != 2:
+        raise ValueError(f"range_m: expected a 2-D array, got shape {r.shape}")
+    return K.max_filter(r, np.broadcast_to(np.asarray(window_px), r.shape))
 
 
 def _chord(r0: np.ndarray, r1: np.ndarray, az0: np.ndarray, az1: np.ndarray,
@@ -150,16 +127,7 @@ def segment_scan_lines(image: RangeImage, params: SegmentationParams | None = No
 
     # --- runs of the filtered profile (spec 2.2 step 2), on the flattened image ------------
     f = filt.ravel()
-    fin = np.isfinite(f)
-    colpos = np.tile(np.arange(cols), rows)
-    with np.errstate(invalid="ignore"):
-        joined = np.zeros(f.size, bool)  # joined[i]: pixel i continues the run of pixel i-1
-        joined[1:] = fin[1:] & fin[:-1] & (np.abs(f[1:] - f[:-1]) <= p.range_step_m)
-    joined &= colpos != 0
-    nxt_joined = np.zeros(f.size, bool)
-    nxt_joined[:-1] = joined[1:]
-    starts = np.flatnonzero(fin & ~joined)
-    ends = np.flatnonzero(fin & ~nxt_joined)
+    starts, ends = K.find_runs(filt, K.weak_threshold(filt.dtype, p.range_step_m))
     if starts.size == 0:
         return empty_segments()
     row = starts // cols
@@ -171,21 +139,11 @@ def segment_scan_lines(image: RangeImage, params: SegmentationParams | None = No
     w_mid = occluder_window(r_mid[:, None], image.elevation_deg[row], daz, p.max_occluder_m,
                             max_window_px)[:, 0]
     hw = (w_mid - 1) // 2
-    valid = np.isfinite(rng).ravel()
-    idx = np.arange(f.size)
-    nxt_valid = np.where(valid, idx, f.size)
-    nxt_valid = np.minimum.accumulate(nxt_valid[::-1])[::-1]
-    prv_valid = np.maximum.accumulate(np.where(valid, idx, -1))
-    c0 = np.maximum(s_col - hw, 0)
-    c1 = np.minimum(e_col + hw, cols - 1)
-    c0 = np.minimum(nxt_valid[row * cols + c0] - row * cols, s_col)
-    c1 = np.maximum(prv_valid[row * cols + c1] - row * cols, e_col)
+    c0, c1, n_points = K.widen_runs(rng.ravel(), cols, row, s_col, e_col, hw)
 
     # --- width W and acceptance (step 3) ---------------------------------------------------
     width = _chord(f[starts].astype(np.float64), f[ends].astype(np.float64), az[c0], az[c1],
                    el[row])
-    csum = np.concatenate([[0], np.cumsum(valid)])
-    n_points = csum[row * cols + c1 + 1] - csum[row * cols + c0]
     keep = (width >= p.min_width_m) & (width <= p.max_width_m) & (n_points >= p.min_points)
     if not keep.any():
         return empty_segments()
@@ -194,11 +152,7 @@ def segment_scan_lines(image: RangeImage, params: SegmentationParams | None = No
 
     # --- outlier gate T_out = 0.5 W + 3 sigma (Eq. 4.7, step 4) ----------------------------
     t_out = 0.5 * width + p.outlier_sigmas * p.range_sigma_m
-    seg, pr, pc = _expand(row, c0, c1)
-    rr = rng[pr, pc]
-    with np.errstate(invalid="ignore"):
-        inl = np.abs(rr - r_mid[seg]) <= t_out[seg]
-    n_inl = np.bincount(seg, weights=inl, minlength=row.size).astype(np.int64)
+    n_inl = K.inlier_counts(rng, row, c0, c1, r_mid, t_out)
     keep = n_inl >= p.min_points
     if not keep.any():
         return empty_segments()
@@ -232,35 +186,19 @@ def _expand(row: np.ndarray, c0: np.ndarray, c1: np.ndarray):
 def link_chains(segments: pd.DataFrame, cols: int, link_range_step_m: float) -> np.ndarray:
     """Vertical chain label per segment (spec 2.4): adjacent rows, overlapping column intervals,
     ``|delta r_mid| <= link_range_step_m`` (inferred); connected components, numbered in order
-    of their first segment."""
+    of their first segment. ``cols`` (the image width) is not needed by the union-find kernel
+    and is kept for callers."""
     n = len(segments)
     if n == 0:
         return np.zeros(0, np.int64)
-    row = segments["row"].to_numpy()
-    c0 = segments["col0"].to_numpy()
-    c1 = segments["col1"].to_numpy()
+    row = segments["row"].to_numpy(np.int64)
+    c0 = segments["col0"].to_numpy(np.int64)
+    c1 = segments["col1"].to_numpy(np.int64)
     rm = segments["r_mid"].to_numpy()
-    key = row * (cols + 1) + c0
-    order = np.argsort(key, kind="stable")
-    skey = key[order]
-    maxspan = int((c1 - c0).max())
-    lo = np.searchsorted(skey, (row + 1) * (cols + 1) + np.maximum(c0 - maxspan, 0), "left")
-    hi = np.searchsorted(skey, (row + 1) * (cols + 1) + c1, "right")
-    cnt = hi - lo
-    a = np.repeat(np.arange(n), cnt)
-    first = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-    b = order[lo[a] + (np.arange(a.size) - first[a])]
-    ok = (row[b] == row[a] + 1) & (c0[b] <= c1[a]) & (c1[b] >= c0[a])
-    ok &= np.abs(rm[b] - rm[a]) <= link_range_step_m
-    a, b = a[ok], b[ok]
-    g = coo_matrix((np.ones(a.size), (a, b)), shape=(n, n))
-    _, lab = connected_components(g, directed=False)
-    # renumber by first appearance
-    first_seen = np.full(lab.max() + 1, n)
-    np.minimum.at(first_seen, lab, np.arange(n))
-    rank = np.empty_like(first_seen)
-    rank[np.argsort(first_seen, kind="stable")] = np.arange(first_seen.size)
-    return rank[lab].astype(np.int64)
+    if rm.dtype not in (np.float32, np.float64):
+        rm = rm.astype(np.float64)
+    order = np.lexsort((c0, row))
+    return K.chain_labels(row, c0, c1, rm, K.weak_threshold(rm.dtype, link_range_step_m), order)
 
 
 def segment_pixels(image: RangeImage, segments: pd.DataFrame, *, inliers_only: bool = True):
