@@ -1,16 +1,14 @@
 """Numba engine of the circle models (spec 3; Th. 4.6.2-4.6.4): the batched circle fit with its
-robust 3-sigma loop
-and refinements, one iteration of circle models and the concatenation-method axes (spec 3.7), one
-circle per
-compiled loop iteration (single thread, cached); ``HAVE_NUMBA`` and the engine choice
-(``auto``/``numpy``/``numba``)."""
+robust 3-sigma loop and refinements, one iteration of circle models (segments on the numba
+threads) and the concatenation-method axes (spec 3.7), one circle per compiled loop iteration
+(cached); ``HAVE_NUMBA`` and the engine choice (``auto``/``numpy``/``numba``)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 try:  # optional accelerator: same maths as the numpy engine, fused per circle
-    from numba import njit
+    from numba import njit, prange
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - numba missing: the numpy engine is used
@@ -335,7 +333,7 @@ if HAVE_NUMBA:
             oks[k] = ok
         return res, oks, inlier
 
-    @njit(cache=True)
+    @njit(cache=True, parallel=True)
     def _nb_phase(
         px,
         py,
@@ -356,12 +354,13 @@ if HAVE_NUMBA:
         gn_iterations,
     ):  # pragma: no cover - compiled
         """Gather (height filter along n), project and fit the circle of every segment in
-        ``circ``; mirrors the gathering of :func:`_circle_phase`."""
+        ``circ``; mirrors the gathering of :func:`_circle_phase`. Segments in parallel (each
+        writes only its own row: the same results on any number of threads)."""
         g = circ.size
         res = np.full((g, 8), np.nan)
         oks = np.zeros(g, dtype=np.bool_)
         npts = np.zeros(g, dtype=np.int64)
-        for k in range(g):
+        for k in prange(g):
             s = circ[k]
             cap = 0
             for j in range(pair_ptr[k], pair_ptr[k + 1]):
