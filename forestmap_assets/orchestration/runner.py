@@ -170,14 +170,25 @@ def _run(
         session.start_workers()  # likely work to do: the workers start while the states are read
         attempts: dict[tuple[str, str | None], int] = {}
         first = True
-        done_scans: dict[tuple[str, str | None], str] = {}
-        recheck: set[str] | None = None  # stages whose states are read again (None: all)
+        # the states read so far stand until something they depend on materialises (the campaign
+        # is locked: only this session writes it); each wave reads again what ran and its readers
+        states: dict[tuple[str, str | None], str] = {}
+        read_pairs: list[str] | None = None
+        accounted = 0
+        depends = _dependencies(parents, granularity)
         while True:
             if pair_stages:
                 session.sync_pairs()
             pairs_now = partitions_of(instance, campaign, "pair")
-            # once the scans' runs are done, their states stay as they are for this session
-            states = {**done_scans, **direct_states(defs, campaign, instance, check_files=False, only=recheck)}
+            ran = {stage for stage, _ in summary.ran[accounted:]}
+            accounted = len(summary.ran)
+            read = None if not states else ran | _readers_of(ran, depends, stages_all)
+            if read is not None and pairs_now != read_pairs:  # pairs added or dropped
+                states = {k: v for k, v in states.items() if granularity.get(k[0]) != "pair"}
+                read |= set(pair_stages) | _readers_of(set(pair_stages), depends, stages_all)
+            if read is None or read:
+                states = {**states, **direct_states(defs, campaign, instance, check_files=False, only=read)}
+            read_pairs = pairs_now
             # a stage that ran and is still not fresh gets one more chance (a stage that reads
             # its own downstream's partitions, retry_pairs, settles on the second run)
             due = {
@@ -211,10 +222,6 @@ def _run(
                 count_attempts(attempts, scans)
                 session.run_partitions("scan", scans)
                 continue
-            if recheck is None:
-                early_stages = [s for s in scan_stages if s not in late_stages]
-                done_scans = {k: v for k, v in states.items() if k[0] in early_stages}
-                recheck = {s for s, _ in stages_all if s not in early_stages}
             pairs = partition_work(pairs_now, pair_stages, due, parents, granularity)
             waiting = _readers_of({s for s, _ in session.pending} | set().union(*late.values()), parents, stages_all)
             level = safe_subset(
@@ -274,6 +281,13 @@ def _late_stages(scan_stages: list[str], parents: dict[str, list[str]], granular
                 needed.add(p)
                 frontier.append(p)
     return [s for s in scan_stages if s not in needed]
+
+
+def _dependencies(parents: dict[str, list[str]], granularity: dict[str, str]) -> dict[str, list[str]]:
+    """The stage graph plus what a pair's run reads outside it: the per-scan stages of its two
+    scans (:data:`.pairs.PAIR_SCAN_INPUTS`) and the pair lists."""
+    extra = [s for s in (*PAIR_SCAN_INPUTS, *PAIR_LISTS) if s in granularity]
+    return {s: [*ps, *extra] if granularity.get(s) == "pair" else ps for s, ps in parents.items()}
 
 
 def _readers_of(stages: set[str], parents: dict[str, list[str]], stages_all) -> set[str]:
