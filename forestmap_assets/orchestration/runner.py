@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -71,12 +72,15 @@ def run_campaign(
     dask_address: str | None = None,
     stages: list[str] | None = None,
     share_namespace: bool = False,
+    idle: Callable[[], None] | None = None,
 ) -> RunSummary:
     """Materialise every missing or stale asset of a campaign, and nothing else.
 
     ``stages`` limits the work to those stages and what they read (default: all).
     ``share_namespace``: run a variant folder of a campaign in the original's store namespace on
     purpose (notebook 4); otherwise another folder with the same name is a one-line error.
+    ``idle``: work for a background thread of this process once the campaign-level stages after
+    the pairs start, when a core is free (the CLI imports the libraries of its exports).
 
     ``executor``: ``in_process`` (each run computes its steps in its own process; the scans' and
     then the pairs' runs side by side in ``workers`` worker processes, one after another in this
@@ -109,12 +113,13 @@ def run_campaign(
             stages,
             start,
             share_namespace,
+            idle,
         )
 
 
 def _run(
     campaign, defs, instance, executor, store_url, progress, workers, dask_address, stages, start,
-    share_namespace=False,
+    share_namespace=False, idle=None,
 ) -> RunSummary:
     parents = stage_parents(defs, campaign)
     stages_all = campaign_stages(defs, campaign)
@@ -260,6 +265,9 @@ def _run(
             if late and PAIR_LISTS[0] not in stages:  # beside this run, in the workers
                 count_attempts(attempts, late)
                 session.run_partitions("scan", {}, late=late)
+            if idle is not None and PAIR_LISTS[0] not in stages:
+                threading.Thread(target=idle, daemon=True).start()
+                idle = None
             session.execute("campaign", stages, None, 1)
     for stage, scan, _ in summary.failures:
         if scan is not None and materialised_before(instance, campaign, stage, scan):
