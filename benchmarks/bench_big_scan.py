@@ -190,6 +190,58 @@ def run_child(campaign_dir: Path, pythonpath: str | None, timeout: float,
     return out
 
 
+# ---- the whole per-scan pipeline, as a user runs it ----------------------------------------
+
+SCAN_STAGES = ("range_images", "elevation_maps", "line_segments", "refine_clouds", "segments",
+               "circle_models", "cylinder_segments", "submaps", "occlusion_boundaries")
+
+
+def whole_run(campaign_dir: Path, rundir: Path) -> dict:
+    """``forestmap run CAMPAIGN --no-cloud`` in a new process with a fresh home (every per-scan
+    asset of the one scan, the campaign-level stages, the exports): each step's seconds as the
+    run reports them, the wall time from the run's first line to the scan's last step, and the
+    peak memory (largest process's maxrss, or the sampled sum of the process tree's PSS)."""
+    import shutil
+
+    from bench_survey import STEP, forestmap_exe, peak_gib, run_measured
+
+    shutil.rmtree(rundir, ignore_errors=True)
+    rundir.mkdir(parents=True)
+    env = {k: v for k, v in os.environ.items() if k not in ("DAGSTER_HOME", "FORESTMAP_STORE")}
+    env["FORESTMAP_HOME"] = str(rundir / "home")
+    m = run_measured([forestmap_exe(), "run", str(campaign_dir), "--no-cloud", "--out",
+                      str(rundir / "out")], rundir / "forestmap.log", env, echo=False)
+    steps, t_first, t_last = {}, None, None
+    for t, line in m["lines"]:
+        if t_first is None and " scans, " in line:
+            t_first = t
+        if (hit := STEP.match(line.rstrip())) and hit["scan"] == "A" and hit["stage"] in SCAN_STAGES:
+            steps[hit["stage"]] = float(hit["s"])
+            t_last = t
+    out = {"rc": m["rc"], "wall_s": m["wall_s"], "steps": steps,
+           "scan_steps_s": sum(steps.values()), "peak_gib": peak_gib(m)}
+    if t_first is not None and t_last is not None:
+        out["scan_wall_s"] = t_last - t_first
+    return out
+
+
+def whole_table(results: dict[str, dict]) -> list[str]:
+    keys = list(results)
+    lines = ["| step | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
+    for stage in SCAN_STAGES:
+        cells = [f"{r['steps'][stage]:.1f}" if stage in r.get("steps", {}) else "-"
+                 for r in results.values()]
+        lines.append(f"| {stage} (s) | " + " | ".join(cells) + " |")
+    lines.append("| **per-scan steps, sum (s)** | " + " | ".join(
+        f"**{r['scan_steps_s']:.1f}**" if "scan_steps_s" in r else "-" for r in results.values()) + " |")
+    lines.append("| scan's steps, wall (s) | " + " | ".join(
+        f"{r['scan_wall_s']:.1f}" if "scan_wall_s" in r else "-" for r in results.values()) + " |")
+    lines.append("| whole run, wall (s) | " + " | ".join(f"{r['wall_s']:.1f}" for r in results.values()) + " |")
+    lines.append("| peak memory (GiB) | " + " | ".join(f"{r['peak_gib']:.2f}" for r in results.values()) + " |")
+    lines.append("| exit code | " + " | ".join(str(r["rc"]) for r in results.values()) + " |")
+    return lines
+
+
 # ---- accuracy of projected clouds ----------------------------------------------------------
 
 def accuracy(cache: Path, seeds: list[int]):
@@ -345,6 +397,7 @@ def main() -> int:
     ap.add_argument("--rebuild", action="store_true")
     ap.add_argument("--seeds", default="1,2,3")
     ap.add_argument("--no-accuracy", action="store_true")
+    ap.add_argument("--no-whole", action="store_true", help="skip the whole `forestmap run`")
     ap.add_argument("--before", default=None, metavar="DIR",
                     help="also measure another copy of the package (PYTHONPATH), e.g. the code "
                     "before this change: git archive HEAD forestmap_assets | tar -x -C DIR")
@@ -378,6 +431,18 @@ def main() -> int:
         "`benchmarks/bench_big_scan.py`."
         + (" *before*: the package before issue 18's big-scan work (`--before`)."
            if args.before else ""), "", *stage_table(results)]
+    if not args.no_whole:
+        whole = {key: whole_run(scans[key], args.cache / f"run-{key}") for key in ("2M", "big")}
+        for key, r in whole.items():
+            print("whole run", key, json.dumps(r), flush=True)
+        text += ["", "The whole per-scan pipeline as a user runs it: `forestmap run CAMPAIGN "
+                 "--no-cloud` on each one-scan campaign, a new process and a fresh home (every "
+                 "per-scan asset, the campaign-level stages, the exports); each step's seconds "
+                 "as the run reports them (read, compute, store write, UI pictures); the scan's "
+                 "wall time from the run's first line to its last step (occlusion boundaries run "
+                 "late, beside the campaign-level stages); peak memory: the larger of the biggest "
+                 "process's maxrss and the sampled sum of the process tree's PSS.", "",
+                 *whole_table(whole)]
     if not args.no_accuracy:
         g = accuracy(args.cache, [int(s) for s in args.seeds.split(",")])
         print(g.round(4).to_string())
