@@ -1,64 +1,70 @@
 """Numba kernels of the spherical projection (spec 1.2, :mod:`forestmap_assets.io.projection`,
-:mod:`forestmap_assets.io.angular_grid`): spherical angles, the azimuth origin, exact k nearest
-neighbours in the (az, el) plane on a cell grid, the occupancy of a trial grid for the fill
-search, the fill ratios and the placement of points into pixels. Each gives the values of the
-numpy it replaced bit for bit (same float32/float64 operations and libm functions, same tie
-rules; the nearest neighbours up to the order of equal distances) in a few passes over the
-points and no temporaries. Work arrays come from a :class:`Scratch` (numpy-allocated and
-reused: a fresh page costs microseconds, and a cloud's points come in any order, so a pass
-touches every page)."""
+:mod:`forestmap_assets.io.angular_grid`): the points' validity, the azimuth origin and the
+unwrapped azimuths, exact k nearest neighbours in the (az, el) plane on a cell grid, the
+occupancy of a trial grid for the fill search and the fill ratios (the hypots are in
+:mod:`._cloud_kernels`, the placement of points into pixels in :mod:`._place_kernels`). Each
+gives the values of the numpy it replaced bit for bit (same float32/float64 operations and libm
+functions, same tie rules; the nearest neighbours up to the order of equal distances) in a few
+passes over the points and no temporaries; the passes over all points run on every core, in
+blocks whose results are combined in block order. Work arrays come from a :class:`Scratch`
+(allocated once and reused: a fresh page costs microseconds, and a cloud's points come in any
+order, so a pass touches every page)."""
 
 from __future__ import annotations
 
 import math
+import mmap
+import warnings
 
 import numba as nb
 import numpy as np
 
+_BLOCK = 1 << 14  # points per parallel task
+
+
+@nb.njit(cache=True, parallel=True)
+def _touch(a):
+    for i in nb.prange(a.size):
+        a[i] = i
+
+
+_THREADS: list[bool] = []
+
+
+def start_threads() -> None:
+    """Start numba's thread pool (once, before the first parallel kernel) without its warning
+    about the older TBB that open3d loads (it falls back to OpenMP)."""
+    if not _THREADS:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
+            _touch(np.zeros(2))
+        _THREADS.append(True)
+
+
+def small_pages(n: int, dtype, *shape: int) -> np.ndarray:
+    """``np.empty((n, *shape), dtype)`` on 4 KB pages (an anonymous mmap), for a big array
+    written and read in order: numpy asks for huge pages for big arrays, and on a VM that hands
+    freed memory back to its host (here) a fresh huge page costs 2-3 times more than its 512
+    small ones (1-2.5 s a GB)."""
+    count = n * math.prod(shape)
+    size = count * np.dtype(dtype).itemsize
+    return np.frombuffer(mmap.mmap(-1, max(size, 1)), dtype, count).reshape(n, *shape)
+
 
 class Scratch:
-    """Work arrays reused across the kernel calls of one projection, grown as needed."""
+    """Work arrays reused across the kernel calls of one projection, grown as needed (those
+    named in ``in_order`` on :func:`small_pages`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, in_order: tuple[str, ...] = ("pix",)) -> None:
         self._arrays: dict[str, np.ndarray] = {}
+        self._in_order = in_order
 
     def get(self, name: str, size: int, dtype) -> np.ndarray:
         a = self._arrays.get(name)
         if a is None or a.size < size or a.dtype != dtype:
-            a = self._arrays[name] = np.empty(size, dtype)
+            new = small_pages if name in self._in_order else np.empty
+            a = self._arrays[name] = new(size, dtype)
         return a[:size]
-
-
-@nb.njit(cache=True)
-def hypots(x, y, z, xc, yc, zc, h, r):
-    """``h = hypot(x, y)`` and ``r = hypot(h, z)`` (libm's, as numpy's), with contiguous copies
-    of ``x, y, z`` (numpy's arctan2 is 3 times faster on them, with the same values): one pass
-    over the points."""
-    for i in range(x.size):
-        xc[i], yc[i], zc[i] = x[i], y[i], z[i]
-        h[i] = math.hypot(x[i], y[i])
-        r[i] = math.hypot(h[i], z[i])
-
-
-@nb.njit(cache=True)
-def fractions(a, el, off_a, step_a, u0, off_e, step_e, v0, fu, fv):
-    """Fractional column ``(a - off_a) / step_a - u0`` and row ``(-el - off_e) / step_e - v0``
-    of each point into ``fu, fv`` (the float64 operations of numpy's in-place version)."""
-    for i in range(a.size):
-        fu[i] = (a[i] - off_a) / step_a - u0
-        fv[i] = (-el[i] - off_e) / step_e - v0
-
-
-@nb.njit(cache=True)
-def points_at(r, az_deg, el_deg, out):
-    """Points ``r (cos el cos az, cos el sin az, sin el)`` into ``out`` (n, 3): numpy's values
-    (libm's sine and cosine; LLVM pairs them into one sincos, 2.5 times faster)."""
-    for i in range(r.size):
-        az, el = np.radians(az_deg[i]), np.radians(el_deg[i])
-        rc = np.float64(r[i]) * math.cos(el)
-        out[i, 0] = rc * math.cos(az)
-        out[i, 1] = rc * math.sin(az)
-        out[i, 2] = r[i] * math.sin(el)
 
 
 @nb.njit(cache=True)
@@ -87,29 +93,100 @@ def azimuths_after(az, lo, span):
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
+def min_after(az, lo, span):
+    """The least ``(az - lo) % 360`` of the azimuths with ``az - lo`` in ``[0, span)`` modulo
+    360 (inf: none): ``azimuths_after(az, lo, span).min()`` in one parallel pass."""
+    n_blocks = (az.size + _BLOCK - 1) // _BLOCK
+    least = np.full(n_blocks, np.inf)
+    for b in nb.prange(n_blocks):
+        m = np.inf
+        for i in range(b * _BLOCK, min(az.size, (b + 1) * _BLOCK)):
+            d = az[i] - lo
+            if 0 <= d < span or 360 <= d < 360 + span or -360 <= d < span - 360:
+                m = min(m, d % 360.0)
+        least[b] = m
+    return least.min()
+
+
+@nb.njit(cache=True, parallel=True)
 def unwrap(az, origin, out):
-    """``out = az - origin``, plus 360 where negative; returns its maximum."""
-    hi = -np.inf
-    for i in range(az.size):
-        a = az[i] - origin
-        out[i] = a + 360.0 if a < 0 else a
-        hi = max(hi, out[i])
-    return hi
+    """``out = az - origin``, plus 360 where negative (``out`` may be ``az``); returns its
+    minimum and maximum."""
+    n_blocks = (az.size + _BLOCK - 1) // _BLOCK
+    lo, hi = np.full(n_blocks, np.inf), np.full(n_blocks, -np.inf)
+    for b in nb.prange(n_blocks):
+        mn, mx = np.inf, -np.inf
+        for i in range(b * _BLOCK, min(az.size, (b + 1) * _BLOCK)):
+            a = az[i] - origin
+            a = a + 360.0 if a < 0 else a
+            out[i] = a
+            mn, mx = min(mn, a), max(mx, a)
+        lo[b], hi[b] = mn, mx
+    return lo.min(), hi.max()
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
+def min_max(a):
+    """``a.min(), a.max()`` (NaN if any is) in one parallel pass."""
+    n_blocks = (a.size + _BLOCK - 1) // _BLOCK
+    lo, hi = np.full(n_blocks, np.inf), np.full(n_blocks, -np.inf)
+    for b in nb.prange(n_blocks):
+        mn, mx = np.inf, -np.inf
+        for i in range(b * _BLOCK, min(a.size, (b + 1) * _BLOCK)):
+            mn, mx = min(mn, a[i]), max(mx, a[i])
+            if a[i] != a[i]:
+                mn = mx = np.nan
+                break
+        lo[b], hi[b] = mn, mx
+    for b in range(n_blocks):
+        if lo[b] != lo[b]:
+            return np.nan, np.nan
+    return lo.min(), hi.max()
+
+
+@nb.njit(cache=True, parallel=True)
+def count_valid(r, az, el):
+    """The points with a finite positive range and finite angles."""
+    n_blocks = (r.size + _BLOCK - 1) // _BLOCK
+    counts = np.zeros(n_blocks, np.int64)
+    for b in nb.prange(n_blocks):
+        k = 0
+        for i in range(b * _BLOCK, min(r.size, (b + 1) * _BLOCK)):
+            k += (r[i] > 0) & (r[i] < np.inf) & np.isfinite(az[i]) & np.isfinite(el[i])
+        counts[b] = k
+    return counts.sum()
+
+
+@nb.njit(cache=True, parallel=True)
 def in_buckets(a, lo, scale, table):
-    """Indices of the angles whose bucket ``int((a - lo) * scale)`` is marked in ``table``."""
-    m = 0
-    for i in range(a.size):
-        m += table[int((a[i] - lo) * scale)]
-    out = np.empty(m, np.int64)
-    m = 0
-    for i in range(a.size):
-        if table[int((a[i] - lo) * scale)]:
-            out[m] = i
-            m += 1
+    """Indices of the angles whose bucket ``int((a - lo) * scale)`` is marked in ``table``, in
+    order: in parallel, blocks marked in a bit mask and counted, then filled from the mask (one
+    pass over the angles)."""
+    n_blocks = (a.size + _BLOCK - 1) // _BLOCK
+    mask = np.zeros((a.size + 63) // 64, np.uint64)
+    start = np.zeros(n_blocks + 1, np.int64)
+    for b in nb.prange(n_blocks):
+        k = 0
+        for i in range(b * _BLOCK, min(a.size, (b + 1) * _BLOCK)):
+            if table[int((a[i] - lo) * scale)]:
+                mask[i >> 6] |= np.uint64(1) << np.uint64(i & 63)
+                k += 1
+        start[b + 1] = k
+    for b in range(n_blocks):
+        start[b + 1] += start[b]
+    out = np.empty(start[n_blocks], np.int64)
+    for b in nb.prange(n_blocks):
+        m = start[b]
+        for w in range(b * _BLOCK // 64, min(mask.size, (b + 1) * _BLOCK // 64)):
+            bits = mask[w]
+            while bits:
+                j = 0
+                while not (bits >> np.uint64(j)) & np.uint64(1):
+                    j += 1
+                out[m] = w * 64 + j
+                m += 1
+                bits &= bits - np.uint64(1)
     return out
 
 
@@ -204,12 +281,6 @@ def _within(x, y, limit):
     return math.hypot(x, y) <= limit
 
 
-@nb.njit(cache=True, inline="always")
-def _hypot32(x, y):
-    """numpy's float32 ``hypot``: the root of the float64 sum of squares, rounded to float32."""
-    return np.float32(math.sqrt(np.float64(x) * np.float64(x) + np.float64(y) * np.float64(y)))
-
-
 def occupancy(a, el, step_a, step_e, u0, v0, rows, cols, move, scratch):
     """Pixel states (``scratch``'s) of the grid ``u = a / step_a - u0``, ``v = -el / step_e -
     v0`` (the fill search, ``projection._filling_steps``): bits 0-1 the points in the pixel (1,
@@ -295,100 +366,3 @@ def neighbour_shares(state, rows, cols, n_filled):
                 out[j] = (left[u] + mid[u] + right[u] - 1) / there
                 j += 1
     return out
-
-
-def place(fu, fv, r32, rows, cols, front, move, scratch):
-    """Pixel (flat index; -1: none; ``scratch``'s) of each point, as ``projection._place``
-    describes: per pixel the front point (float32 range ``r32`` within ``front`` of the
-    nearest) nearest its centre (float32 ``off^2 + 1e-6 r``; ties: the last point); then, in
-    three rounds (the nearest, second and third neighbour on a left-out point's offset side
-    within ``move``), each empty pixel takes the nearest of the points aiming at it (ties: the
-    last)."""
-    n, n_pix = fu.size, rows * cols
-    pix = scratch.get("pix", n, np.int32)
-    _place(fu, fv, r32, rows, cols, front, move, scratch.get("flat", n, np.int32),
-           scratch.get("best", n_pix, np.float32), scratch.get("key", n_pix, np.float32),
-           scratch.get("owner", n_pix, np.int32), scratch.get("near", n_pix, np.uint8), pix,
-           scratch.get("lose", n, np.int32),
-           scratch.get("target", 3 * n, np.int32).reshape(n, 3))
-    return pix
-
-
-@nb.njit(cache=True)
-def _place(fu, fv, r32, rows, cols, front, move, flat, best, key_best, owner, near, pix, lose,
-           target):
-    n = fu.size
-    best[:] = np.inf
-    key_best[:] = np.inf
-    owner[:] = -1  # the point holding a pixel (-1: empty)
-    for i in range(n):
-        flat[i] = int(np.rint(fv[i])) * cols + int(np.rint(fu[i]))
-        best[flat[i]] = min(best[flat[i]], r32[i])
-    for i in range(n):  # branch-free: the points' order is random
-        f = flat[i]
-        du, dv = fu[i] - np.rint(fu[i]), fv[i] - np.rint(fv[i])
-        key = np.float32(du * du + dv * dv + np.float64(np.float32(1e-6) * r32[i]))
-        better = (r32[i] <= best[f] + front) & (key <= key_best[f])
-        key_best[f] = key if better else key_best[f]
-        owner[f] = i if better else owner[f]
-    # near: the pixels with an empty one among their 3 x 3 (row slices, as region_counts)
-    column = np.zeros(cols + 2, np.uint8)
-    left, mid, right = column[:cols], column[1:cols + 1], column[2:]
-    for v in range(rows):
-        above = owner[max(v - 1, 0) * cols:max(v - 1, 0) * cols + cols]
-        row = owner[v * cols:v * cols + cols]
-        below = owner[min(v + 1, rows - 1) * cols:min(v + 1, rows - 1) * cols + cols]
-        for u in range(cols):
-            mid[u] = (above[u] < 0) | (row[u] < 0) | (below[u] < 0)
-        out = near[v * cols:v * cols + cols]
-        for u in range(cols):
-            out[u] = left[u] | mid[u] | right[u]
-    # the left-out points with an empty pixel among their three targets (a pixel taken now
-    # stays taken), the targets nearest first (-1: out of the image, too far or taken)
-    n_lose = 0
-    one = np.float32(1.0)
-    for i in range(n):
-        f = flat[i]
-        pix[i] = f if owner[f] == i else -1
-        if pix[i] >= 0 or near[f] == 0:
-            continue
-        du, dv = np.float32(fu[i] - np.rint(fu[i])), np.float32(fv[i] - np.rint(fv[i]))
-        su, sv = 1 if du >= 0 else -1, 1 if dv >= 0 else -1
-        u, v = int(np.rint(fu[i])), int(np.rint(fv[i]))
-        in_u, in_v = (u + su >= 0) & (u + su < cols), (v + sv >= 0) & (v + sv < rows)
-        # beside, above/below, diagonal; outside the image: the point's own (taken) pixel
-        t = (f + su if in_u else f, f + sv * cols if in_v else f,
-             f + su + sv * cols if in_u & in_v else f)
-        free = (owner[t[0]] < 0, owner[t[1]] < 0, owner[t[2]] < 0)
-        if not (free[0] | free[1] | free[2]):
-            continue
-        d = (_hypot32(one - abs(du), dv), _hypot32(du, one - abs(dv)),
-             _hypot32(one - abs(du), one - abs(dv)))
-        o0, o1, o2 = 0, 1, 2  # stable sort of the three
-        if d[o1] < d[o0]:
-            o0, o1 = o1, o0
-        if d[o2] < d[o1]:
-            o1, o2 = o2, o1
-            if d[o1] < d[o0]:
-                o0, o1 = o1, o0
-        for rank, c in enumerate((o0, o1, o2)):
-            target[n_lose, rank] = t[c] if free[c] and d[c] <= move else -1
-        lose[n_lose] = i
-        n_lose += 1
-    # each round: an empty pixel aimed at takes its nearest candidate (ties: the last); it was
-    # never aimed at before (every pixel aimed at is taken), so its best range is still inf
-    pick = key_best.view(np.int32)
-    won = np.zeros(n_lose, np.bool_)
-    for rank in range(3):
-        for j in range(n_lose):
-            t = target[j, rank]
-            if not won[j] and t >= 0 and owner[t] < 0 and r32[lose[j]] <= best[t]:
-                best[t] = r32[lose[j]]
-                pick[t] = j
-        for j in range(n_lose):
-            t = target[j, rank]
-            if not won[j] and t >= 0 and owner[t] < 0 and pick[t] == j:
-                pix[lose[j]] = t
-                owner[t] = lose[j]
-                won[j] = True
-    return pix

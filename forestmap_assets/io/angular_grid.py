@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from forestmap_assets.io._cloud_kernels import hypots
 from forestmap_assets.io._projection_kernels import (
     azimuth_bins,
     azimuths_after,
-    hypots,
     in_buckets,
     knn,
+    min_after,
+    min_max,
     unwrap,
 )
 
@@ -35,10 +37,12 @@ def spherical_angles(xyz: np.ndarray, y=None, z=None) -> tuple[np.ndarray, np.nd
     """Range, azimuth ``atan2(y, x)``, elevation ``atan2(z, hypot(x, y))`` (deg) of (n, 3) or x, y, z."""
     if y is None:
         xyz = np.asarray(xyz, dtype=np.float64)
-        # the values of the code below in fewer passes: both hypots in one, arctan2 on
-        # contiguous copies (3 times faster, same values), in place
+        # the values of the code below in fewer passes: both hypots in one (on every core),
+        # arctan2 on contiguous copies (3 times faster, same values), in place
         x, y, z, h, r = (np.empty(xyz.shape[0]) for _ in range(5))
-        hypots(xyz[:, 0], xyz[:, 1], xyz[:, 2], x, y, z, h, r)
+        for i, c in enumerate((x, y, z)):
+            c[:] = xyz[:, i]
+        hypots(x, y, z, h, r)
         az = np.degrees(np.arctan2(y, x, out=x), out=x)
         return r, az, np.degrees(np.arctan2(z, h, out=y), out=y)
     h = np.hypot(xyz, y)
@@ -60,21 +64,24 @@ def _azimuth_origin(az_deg: np.ndarray) -> float:
     i = int(np.argmax(gaps))
     j = occ[(i + 1) % occ.size] if gaps[i] > 1 else int(np.argmin(counts))
     lo = j * width - 180.0 - width  # the bin, and the one before it (a sample may miss points)
-    near = azimuths_after(az, lo, 2 * width)  # (az - lo) % 360 in [0, 2 width)
-    if gaps[i] > 1:
-        return float(lo + near.min())
-    s = np.sort(near)
+    if gaps[i] > 1:  # the least (az - lo) % 360 in [0, 2 width)
+        return float(lo + min_after(az, lo, 2 * width))
+    s = np.sort(azimuths_after(az, lo, 2 * width))
     return float(lo + s[int(np.argmax(np.diff(s))) + 1 if s.size > 1 else 0])
 
 
-def _unwrapped_azimuth(az_deg: np.ndarray) -> tuple[np.ndarray, float]:
-    """Azimuths shifted to ``[0, 360)`` from the origin in the largest gap, and that origin."""
+def _unwrapped_azimuth(az_deg: np.ndarray, *, overwrite: bool = False
+                       ) -> tuple[np.ndarray, float, tuple[float, float]]:
+    """Azimuths shifted to ``[0, 360)`` from the origin in the largest gap (in place with
+    ``overwrite``), that origin, and their least and greatest."""
     az = np.asarray(az_deg, dtype=np.float64)
     origin = _azimuth_origin(az)
-    a = np.empty(az.size)  # az - origin, + 360 where negative (np.mod of 30 M floats: seconds)
-    if unwrap(az, origin, a) >= 360.0:  # azimuths past +180 (an organised image's columns)
+    a = az if overwrite else np.empty(az.size)
+    lo, hi = unwrap(az, origin, a)  # az - origin, + 360 where negative (np.mod: seconds)
+    if hi >= 360.0:  # azimuths past +180 (an organised image's columns)
         a %= 360.0
-    return a, origin
+        lo, hi = a.min(), a.max()
+    return a, origin, (float(lo), float(hi))
 
 
 def _window_subset(a: np.ndarray, max_points: int, n_windows: int, rng) -> np.ndarray:
@@ -82,7 +89,7 @@ def _window_subset(a: np.ndarray, max_points: int, n_windows: int, rng) -> np.nd
     n = a.size
     if n <= max_points:
         return np.arange(n)
-    lo, hi = float(a.min()), float(a.max())
+    lo, hi = (float(v) for v in min_max(a))
     n_buckets = 64 * n_windows * max(1, n // max_points)  # windows of 64 buckets, one pass
     table = np.zeros(n_buckets + 1, dtype=bool)
     for s in rng.integers(0, max(1, n_buckets - 64), size=n_windows):
@@ -286,5 +293,6 @@ def estimate_angular_step(xyz: np.ndarray) -> tuple[float, float]:
     ok = np.isfinite(r) & (r > 0)
     if np.count_nonzero(ok) < 2:
         raise ValueError("cannot estimate the angular step from fewer than 2 points")
-    _, step_a, _, step_e = _estimate_steps(_unwrapped_azimuth(az[ok])[0], el[ok])
+    _, step_a, _, step_e = _estimate_steps(_unwrapped_azimuth(az[ok], overwrite=True)[0],
+                                            el[ok])
     return step_a, step_e

@@ -25,15 +25,15 @@ from __future__ import annotations
 import numpy as np
 
 from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.io._place_kernels import fill, place, write_image
 from forestmap_assets.io._projection_kernels import (
     Scratch,
-    fractions,
+    count_valid,
     mark,
     neighbour_shares,
     occupancy,
-    place,
-    points_at,
     region_counts,
+    start_threads,
 )
 from forestmap_assets.io.angular_grid import (
     _estimate_steps,
@@ -152,21 +152,11 @@ def _dilated(m: np.ndarray) -> np.ndarray:  # 3 x 3 dilation of a boolean image
 def _dims(bounds, off_a, step_a, off_e, step_e) -> tuple[int, int, int, int]:
     """Grid indices of column and row 0, rows and columns of the image of angles within
     ``bounds`` (az min, az max, el min, el max) on the grid ``(off_a, step_a, off_e, step_e)``:
-    the extreme fractional columns and rows of :func:`_pixels` (its maps are monotone)."""
+    the extreme fractional columns and rows of :func:`_place` (its maps are monotone)."""
     a_lo, a_hi, e_lo, e_hi = bounds
     u0, v0 = int(np.rint((a_lo - off_a) / step_a)), int(np.rint((-e_hi - off_e) / step_e))
     rows = int(np.rint((-e_lo - off_e) / step_e - v0)) + 1
     return u0, v0, rows, int(np.rint((a_hi - off_a) / step_a - u0)) + 1
-
-
-def _pixels(a, el, bounds, off_a, step_a, off_e, step_e, scratch: Scratch):
-    """Fractional column ``(a - off_a) / step_a - u0`` and row ``(-el - off_e) / step_e - v0``
-    of each point (``scratch``'s), grid indices ``u0, v0`` of column and row 0, rows and
-    columns of the image (:func:`_dims`)."""
-    u0, v0, rows, cols = _dims(bounds, off_a, step_a, off_e, step_e)
-    fu, fv = scratch.get("fu", a.size, np.float64), scratch.get("fv", a.size, np.float64)
-    fractions(a, el, off_a, step_a, u0, off_e, step_e, v0, fu, fv)
-    return fu, fv, u0, v0, rows, cols
 
 
 def _filling_steps(a, el, steps, min_fill: float, max_pixels: int,
@@ -227,13 +217,15 @@ def _filling_steps(a, el, steps, min_fill: float, max_pixels: int,
     return steps[0] * hi, steps[1] * hi
 
 
-def _place(fu, fv, r32, rows, cols, scratch: Scratch) -> np.ndarray:
-    """Pixel (flat index; -1: none) of each point (fractional column ``fu``, row ``fv``). A
-    pixel keeps its front point (within ``_FRONT_M`` of the nearest: first return, spec 1.1)
-    nearest its centre (inferred: the nearest of k noisy ranges is ~1 sigma short). A point left
-    out may fill an empty pixel of the three on its offset's side within ``_MOVE_PX`` of its
-    direction (jitter pushed it over the border; a second return behind the first stays)."""
-    return place(fu, fv, r32, rows, cols, np.float32(_FRONT_M), np.float32(_MOVE_PX), scratch)
+def _place(a, el, grid, r32, rows, cols, scratch: Scratch) -> np.ndarray:
+    """Pixel (flat index; -1: none) of each point (unwrapped azimuth ``a``, elevation ``el``)
+    on ``grid = (off_a, step_a, u0, off_e, step_e, v0)``: fractional column ``(a - off_a) /
+    step_a - u0``, row ``(-el - off_e) / step_e - v0``. A pixel keeps its front point (within
+    ``_FRONT_M`` of the nearest: first return, spec 1.1) nearest its centre (inferred: the
+    nearest of k noisy ranges is ~1 sigma short). A point left out may fill an empty pixel of
+    the three on its offset's side within ``_MOVE_PX`` of its direction (jitter pushed it over
+    the border; a second return behind the first stays)."""
+    return place(a, el, grid, r32, rows, cols, np.float32(_FRONT_M), np.float32(_MOVE_PX), scratch)
 
 
 def _grid(a, el, given, min_step_deg, min_fill, max_pixels, scratch):
@@ -264,7 +256,7 @@ def project_angles(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: 
                    rgb: np.ndarray | None = None, intensity: np.ndarray | None = None, *,
                    angular_step_deg: float | tuple[float, float] | None = None,
                    min_step_deg: float = 0.0, min_fill: float = _DEFAULTS.min_fill,
-                   max_pixels: int = 100_000_000) -> RangeImage:
+                   max_pixels: int = 100_000_000, overwrite: bool = False) -> RangeImage:
     """Organised range image (spec 1.2) from per-point range, azimuth and elevation (scanner
     frame, :func:`spherical_angles`; a reader of a big file computes them chunk by chunk).
 
@@ -274,7 +266,8 @@ def project_angles(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: 
     column's azimuth lies in [-180, 180), later ones increase past it; one point per pixel
     (:func:`_place`), NaN where none, kept with its own xyz (``RangeImage.points``: never
     re-synthesised at the pixel's centre). ``max_pixels`` (inferred) guards against a step far too
-    fine.
+    fine. ``overwrite``: the azimuths may be overwritten (the caller's own float64 array: it
+    then holds the unwrapped azimuths; saves a copy of a big cloud's).
     """
     r = np.asarray(range_m).reshape(-1)
     az = np.asarray(azimuth_deg, dtype=np.float64).reshape(-1)
@@ -286,31 +279,34 @@ def project_angles(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: 
         raise ValueError(f"rgb: expected shape {(n_in, 3)}, got {np.shape(rgb)}")
     if intensity is not None and np.size(intensity) != n_in:
         raise ValueError(f"intensity: expected {n_in} values, got {np.shape(intensity)}")
-    ok = np.isfinite(r) & (r > 0) & np.isfinite(az) & np.isfinite(el)
-    if not ok.all():
-        r, az, el = r[ok], az[ok], el[ok]
-        rgb = None if rgb is None else np.asarray(rgb)[ok]
-        intensity = None if intensity is None else np.asarray(intensity).reshape(-1)[ok]
+    start_threads()
+    if r.dtype not in (np.float32, np.float64) or count_valid(r, az, el) < n_in:
+        ok = np.isfinite(r) & (r > 0) & np.isfinite(az) & np.isfinite(el)
+        if not ok.all():
+            r, az, el = r[ok], az[ok], el[ok]
+            rgb = None if rgb is None else np.asarray(rgb)[ok]
+            intensity = None if intensity is None else np.asarray(intensity).reshape(-1)[ok]
+            overwrite = True
     if r.size == 0:
         raise ValueError("no valid points to project")
-    a, origin = _unwrapped_azimuth(az)
+    a, origin, (a_lo, a_hi) = _unwrapped_azimuth(az, overwrite=overwrite)
     del az
     if angular_step_deg is None and r.size < 2:
         raise ValueError("cannot estimate the angular step from fewer than 2 points")
-    scratch = Scratch()
+    scratch, filled = Scratch(), None
     step_a, step_e, offsets = _grid(a, el, angular_step_deg, min_step_deg, min_fill, max_pixels,
                                     scratch)
     r32 = np.asarray(r, dtype=np.float32)
-    bounds = float(a.min()), float(a.max()), float(el.min()), float(el.max())
+    bounds = a_lo, a_hi, float(el.min()), float(el.max())
     for _ in range(8):  # an estimated step: grown by 5 % while short of min_fill (inferred)
         off_a, off_e = offsets(step_a, step_e)
-        fu, fv, u0, v0, rows, cols = _pixels(a, el, bounds, off_a, step_a, off_e, step_e, scratch)
+        u0, v0, rows, cols = _dims(bounds, off_a, step_a, off_e, step_e)
         if rows * cols > max_pixels:
             raise ValueError(
                 f"projection would need {rows} x {cols} pixels (angular step {step_a:.4g} x "
                 f"{step_e:.4g} deg); give angular_step_deg"
             )
-        pix = _place(fu, fv, r32, rows, cols, scratch)
+        pix = _place(a, el, (off_a, step_a, u0, off_e, step_e, v0), r32, rows, cols, scratch)
         if angular_step_deg is not None or min_fill <= 0 or min(rows, cols) < 3:
             break
         filled = scratch.get("filled", rows * cols, np.uint8)
@@ -321,31 +317,37 @@ def project_angles(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: 
     azimuth = origin + off_a + (u0 + np.arange(cols)) * step_a
     azimuth -= 360.0 * np.floor((azimuth[0] + 180.0) / 360.0)
     elevation = -(off_e + (v0 + np.arange(rows)) * step_e)
-    del fu, fv
-    keep = np.flatnonzero(pix >= 0)
-    at = pix[keep]
-    del pix
-    points = _points(r[keep], a[keep] + origin, el[keep])  # each point's own direction
-    del a, el
-
-    def image(values, empty, dtype, *shape):
-        out = np.full((rows * cols, *shape), empty, dtype=dtype)
-        out[at] = values
-        return out.reshape(rows, cols, *shape)
-
-    rgb_img = None if rgb is None else image(
-        np.clip(np.rint(np.asarray(rgb)[keep]), 0, 255), 0, np.uint8, 3)
-    int_img = None if intensity is None else image(
-        np.asarray(intensity, dtype=np.float32).reshape(-1)[keep], np.nan, np.float32)
-    return RangeImage(image(r[keep], np.nan, np.float32), azimuth, elevation,
-                      intensity=int_img, rgb=rgb_img, points=image(points, np.nan, np.float32, 3))
+    del scratch, filled  # their pixel arrays' pages go to the image (a fresh page costs more)
+    return _image(pix, r, a, el, origin, rgb, intensity, rows, cols, azimuth, elevation)
 
 
-def _points(r, az_deg, el_deg) -> np.ndarray:
-    """Scanner-frame points (n, 3) at ranges ``r`` along their own azimuth and elevation."""
-    out = np.empty((np.size(r), 3))
-    points_at(r, az_deg, el_deg, out)
-    return out
+def _image(pix, r, a, el, origin, rgb, intensity, rows, cols, azimuth, elevation) -> RangeImage:
+    """The range image of the points placed at ``pix`` (flat pixel; -1: none), each with its
+    own xyz along its own direction (azimuth ``a + origin``); colour as uint8 (rounded and
+    clipped), intensity as float32."""
+    def new(dtype, empty, *shape):
+        out = np.empty((rows * cols, *shape), dtype=dtype)
+        fill(out.reshape(-1), empty)
+        return out
+
+    range_img, points = new(np.float32, np.nan), new(np.float32, np.nan, 3)
+    int_img, int_in = np.empty(0, np.float32), np.empty(0, np.float32)
+    if intensity is not None:
+        int_img = new(np.float32, np.nan)
+        int_in = np.asarray(intensity).reshape(-1)
+        if int_in.dtype not in (np.float32, np.uint16, np.uint8):  # exact in float32
+            int_in = int_in.astype(np.float32)
+    rgb_img, rgb_in = np.empty((0, 3), np.uint8), np.empty((0, 3), np.uint8)
+    if rgb is not None:
+        rgb_img = new(np.uint8, 0, 3)
+        rgb_in = np.asarray(rgb)
+        if rgb_in.dtype != np.uint8:
+            rgb_in = np.clip(np.rint(rgb_in), 0, 255).astype(np.uint8)
+    write_image(pix, r, a, el, origin, int_in, rgb_in, range_img, int_img, rgb_img, points)
+    return RangeImage(range_img.reshape(rows, cols), azimuth, elevation,
+                      intensity=None if intensity is None else int_img.reshape(rows, cols),
+                      rgb=None if rgb is None else rgb_img.reshape(rows, cols, 3),
+                      points=points.reshape(rows, cols, 3))
 
 
 def project_to_range_image(
@@ -364,4 +366,5 @@ def project_to_range_image(
     with np.errstate(invalid="ignore"):
         r, az, el = spherical_angles(_xyz(xyz))
     return project_angles(r, az, el, rgb, intensity, angular_step_deg=angular_step_deg,
-                          min_step_deg=min_step_deg, min_fill=min_fill, max_pixels=max_pixels)
+                          min_step_deg=min_step_deg, min_fill=min_fill, max_pixels=max_pixels,
+                          overwrite=True)

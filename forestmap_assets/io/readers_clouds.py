@@ -4,7 +4,7 @@ PLY/PCD (open3d), turned into a range image by spherical projection.
 LAS/LAZ is read in chunks of ``_CHUNK_POINTS`` (laspy, LAZ decompressed by lazrs on every core):
 each chunk's points go to float64 scanner-frame coordinates and straight to their range,
 azimuth and elevation, so a 30 M-point scan never holds its whole cloud as float64 xyz
-(issue 18, big scans).
+(issue 18, big scans; numba kernels on every core, :mod:`forestmap_assets.io._cloud_kernels`).
 
 A damaged file is refused, not read in part (issue 18): the header's point count is compared
 with what the file holds (its size for binary data, its words for ASCII data) before the
@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from forestmap_assets.core.features.range_image import RangeImage
-from forestmap_assets.io.projection import spherical_angles
+from forestmap_assets.io._cloud_kernels import fast_hypot, fix_rare, las_xyz, rgb8
+from forestmap_assets.io._projection_kernels import small_pages
 from forestmap_assets.io.readers_common import (
     BadScan,
     _project,
@@ -32,7 +33,8 @@ from forestmap_assets.io.readers_common import (
 )
 
 _LAS_DAMAGE = "corrupt or truncated LAS/LAZ data"
-_CHUNK_POINTS = 4_000_000  # (inferred) points per LAS/LAZ read: ~0.5 GB of working memory
+_CHUNK_POINTS = 1_000_000  # (inferred) points per LAS/LAZ read: ~30 MB of decompressed records
+_BLOCK = 1 << 17  # points converted at a time (their float64 x, y, z stay in the cache)
 
 
 def _las_layout(path: Path) -> dict:
@@ -140,46 +142,63 @@ def read_las(path: Path, angular_step_deg, to_scanner=None) -> RangeImage:
         raise BadScan(f"{_LAS_DAMAGE} ({count_damage(n, points.held)})")
     if layout["compressed"]:
         _check_laz_chunks(path, header, n)
-    return _project_angles(points.range_m, points.azimuth_deg, points.elevation_deg,
-                           points.rgb8(), points.intensity, angular_step_deg)
+    rgb, points.rgb = points.rgb8(), None
+    return _project_angles(points.range_m, points.azimuth_deg, points.elevation_deg, rgb,
+                           points.intensity, angular_step_deg)
 
 
 class _LasPoints:
     """A LAS/LAZ file's points gathered chunk by chunk as range (float32: what the range image
-    keeps), azimuth and elevation (float64) in the scanner frame, raw colour and intensity."""
+    keeps), azimuth and elevation (float64) in the scanner frame, raw colour and intensity.
+    A chunk goes through in blocks of ``_BLOCK`` points (their z and hypot(x, y) in the
+    cache): the coordinates and hypots by :func:`~forestmap_assets.io._cloud_kernels.las_xyz`
+    on every core (x and y straight into the azimuth and elevation arrays: their pages are
+    first touched in parallel), then numpy's arctan2 and degrees in place: the values of
+    ``spherical_angles(chunk.x, chunk.y, chunk.z)``."""
 
     def __init__(self, n: int, has_rgb: bool, has_intensity: bool) -> None:
         self.held = 0
-        self.range_m = np.empty(n, dtype=np.float32)
-        self.azimuth_deg = np.empty(n, dtype=np.float64)
-        self.elevation_deg = np.empty(n, dtype=np.float64)
-        self.rgb = np.empty((n, 3), dtype=np.uint16) if has_rgb else None
-        self.intensity = np.empty(n, dtype=np.float32) if has_intensity else None
+        self.range_m = small_pages(n, np.float32)
+        self.azimuth_deg = small_pages(n, np.float64)
+        self.elevation_deg = small_pages(n, np.float64)
+        self.rgb = small_pages(n, np.uint16, 3) if has_rgb else None
+        self.rgb_max = 0
+        self.intensity = small_pages(n, np.uint16) if has_intensity else None
+        self._z, self._h = np.empty(_BLOCK), np.empty(_BLOCK)
+        self._fast = fast_hypot()
 
     def add(self, chunk, to_scanner) -> None:
         a, b = self.held, self.held + len(chunk)
-        xyz = (np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z))
-        if to_scanner is not None:  # project-frame file: to the scanner's frame in float64
-            m = np.asarray(to_scanner, dtype=np.float64)
-            xyz = tuple(xyz[0] * m[i, 0] + xyz[1] * m[i, 1] + xyz[2] * m[i, 2] + m[i, 3]
-                        for i in range(3))
-        self.range_m[a:b], self.azimuth_deg[a:b], self.elevation_deg[a:b] = spherical_angles(*xyz)
+        moved = to_scanner is not None  # project-frame file: to the scanner's frame in float64
+        m = np.asarray(to_scanner if moved else np.eye(4), dtype=np.float64)
+        scale = np.asarray(chunk.scales, dtype=np.float64)
+        offset = np.asarray(chunk.offsets, dtype=np.float64)
+        xyz = [np.asarray(chunk.array[name]) for name in ("X", "Y", "Z")]
+        for s in range(0, b - a, _BLOCK):
+            e = min(s + _BLOCK, b - a)
+            x, y = self.azimuth_deg[a + s:a + e], self.elevation_deg[a + s:a + e]
+            z, h, r = self._z[:e - s], self._h[:e - s], self.range_m[a + s:a + e]
+            if las_xyz(*(c[s:e] for c in xyz), scale, offset, m, moved, x, y, z, h, r,
+                       self._fast) and self._fast:
+                fix_rare(x, y, z, h, r)
+            np.degrees(np.arctan2(y, x, out=x), out=x)  # the azimuth, in place of x
+            np.degrees(np.arctan2(z, h, out=y), out=y)  # the elevation, in place of y
         if self.rgb is not None:
             for i, name in enumerate(("red", "green", "blue")):
                 self.rgb[a:b, i] = np.asarray(chunk[name])
+            if b > a:
+                self.rgb_max = max(self.rgb_max, int(self.rgb[a:b].max()))
         if self.intensity is not None:
             self.intensity[a:b] = np.asarray(chunk["intensity"])
         self.held = b
 
     def rgb8(self) -> np.ndarray | None:
-        """Colour as uint8: 16-bit per the LAS spec; files holding 8-bit values (max <= 255)
-        are kept as they are."""
+        """Colour as uint8 (``to_rgb8``, in one parallel pass): 16-bit per the LAS spec; files
+        holding 8-bit values (max <= 255) are kept as they are."""
         if self.rgb is None:
             return None
-        full = 65535.0 if self.rgb.size and self.rgb.max() > 255 else 255.0
         out = np.empty(self.rgb.shape, dtype=np.uint8)
-        for a in range(0, len(out), _CHUNK_POINTS):
-            out[a:a + _CHUNK_POINTS] = to_rgb8(self.rgb[a:a + _CHUNK_POINTS], full_scale=full)
+        rgb8(self.rgb, 65535.0 if self.rgb_max > 255 else 255.0, out)
         return out
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.io._place_kernels import bridge_rows
 from forestmap_assets.io.projection import (
     fill_ratio,
     project_angles,
@@ -140,13 +141,14 @@ def _project(
 def _project_angles(range_m, azimuth_deg, elevation_deg, rgb, intensity,
                     angular_step_deg) -> RangeImage:
     """:func:`_project` for a reader that computed the points' spherical angles itself (a big
-    file read in chunks, :func:`forestmap_assets.io.projection.spherical_angles`)."""
+    file read in chunks, :func:`forestmap_assets.io.projection.spherical_angles`); its
+    azimuth array is used up (overwritten)."""
     if np.size(range_m) == 0:
         raise BadScan("no points")
     settings = ProjectionSettings.of(angular_step_deg)
     try:
         image = project_angles(range_m, azimuth_deg, elevation_deg, rgb, intensity,
-                               **settings.kwargs())
+                               **settings.kwargs(), overwrite=True)
     except ValueError as exc:
         raise BadScan(f"spherical projection failed: {one_line(exc)}") from exc
     return _bridged(image, int(np.count_nonzero(np.isfinite(range_m))), settings)
@@ -173,24 +175,13 @@ def bridge_row_gaps(range_img, intensity=None, rgb=None, points=None) -> None:
     ``_GAP_RANGE_M`` apart: range, intensity and the pixel's point (``RangeImage.points``, on
     the chord between its neighbours' points) interpolated linearly, colour of the nearer
     side (inferred: the holes a projection leaves in a surface split its scan lines, and the
-    segmentation, spec 2.2, breaks a run at every empty pixel)."""
-    rows, cols = range_img.shape
-    empty = ~np.isfinite(range_img)
-    for g in range(1, _GAP_PX + 1):
-        if cols < g + 2:
-            break
-        left, right = range_img[:, : cols - g - 1], range_img[:, g + 1:]
-        ok = np.abs(left - right) <= _GAP_RANGE_M  # False where either side is empty
-        for k in range(g):
-            ok &= empty[:, 1 + k: cols - g + k]
-        vv, uu = np.nonzero(ok)
-        for k in range(g):
-            w = np.float32((k + 1) / (g + 1))
-            for img in (range_img, intensity, points):
-                if img is not None:
-                    img[vv, uu + 1 + k] = (1 - w) * img[vv, uu] + w * img[vv, uu + g + 1]
-            if rgb is not None:
-                rgb[vv, uu + 1 + k] = rgb[vv, uu + (0 if w <= 0.5 else g + 1)]
+    segmentation, spec 2.2, breaks a run at every empty pixel). A numba kernel, rows in
+    parallel (:func:`forestmap_assets.io._place_kernels.bridge_rows`)."""
+    r = np.asarray(range_img)
+    bridge_rows(r, np.empty((0, 0), r.dtype) if intensity is None else intensity,
+                np.empty((0, 0, 3), np.uint8) if rgb is None else rgb,
+                np.empty((0, 0, 3), r.dtype) if points is None else points, _GAP_PX,
+                r.dtype.type(_GAP_RANGE_M))  # numpy compares in the image's precision
 
 
 def coarsen_range_image(image: RangeImage, min_step_deg: float) -> RangeImage:
@@ -212,5 +203,6 @@ def coarsen_range_image(image: RangeImage, min_step_deg: float) -> RangeImage:
         None if image.rgb is None else image.rgb[v, u],
         None if image.intensity is None else image.intensity[v, u],
         angular_step_deg=(max(sa, min_step_deg), max(se, min_step_deg)), min_fill=0.0,
+        overwrite=True,
     )
     return replace(out, tilt_deg=image.tilt_deg)
