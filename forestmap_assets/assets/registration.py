@@ -55,7 +55,9 @@ def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
     from forestmap_assets.core.registration.colour import rgb_to_hue
 
     names = set(table.column_names)
-    xyz = np.column_stack([table.column(c).to_numpy() for c in "xyz"]).astype(np.float64)
+    xyz = np.empty((table.num_rows, 3))
+    for i, c in enumerate("xyz"):
+        xyz[:, i] = table.column(c).to_numpy()
     hue = None
     if {"r", "g", "b"} <= names:
         rgb = np.column_stack([table.column(c).to_numpy() for c in "rgb"]).astype(np.uint8)

@@ -95,7 +95,9 @@ def run_campaign(
     campaign = load_campaign(folder)
     instance = instance or get_instance()
     store_url = store_url or default_store_url()
-    workers = workers or os.cpu_count() or 2
+    # no more workers than scans: a one-scan campaign runs in this process, its reading not
+    # slowed by idle workers starting up (a 30 M-point LAZ: 4.6 s instead of 3.2 s)
+    workers = max(1, min(workers or os.cpu_count() or 2, len(campaign.scan_ids)))
     if not share_namespace:
         claim_campaign_name(campaign, store_url, record=False)  # fail before any work
     defs = build_definitions([campaign], store_url, executor=executor)
