@@ -439,8 +439,8 @@ def main() -> int:
                  "--no-cloud` on each one-scan campaign, a new process and a fresh home (every "
                  "per-scan asset, the campaign-level stages, the exports); each step's seconds "
                  "as the run reports them (read, compute, store write, UI pictures); the scan's "
-                 "wall time from the run's first line to its last step (occlusion boundaries run "
-                 "late, beside the campaign-level stages); peak memory: the larger of the biggest "
+                 "wall time from the run's first line to its last step (a one-scan campaign runs "
+                 "every step in the `forestmap run` process); peak memory: the larger of the biggest "
                  "process's maxrss and the sampled sum of the process tree's PSS.", "",
                  *whole_table(whole)]
     if not args.no_accuracy:
