@@ -19,6 +19,18 @@ import numba as nb
 import numpy as np
 
 
+@nb.njit(cache=True, inline="always")
+def _cell(p, i, cell_m, max_distance):
+    """``(used, ix, iy, z)`` of point ``i``: whether it counts (finite, ``|x|, |y| <
+    max_distance``) and its cell ``floor(x / cell_m), floor(y / cell_m)``."""
+    x, y, z = p[i, 0], p[i, 1], p[i, 2]
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return False, 0, 0, z
+    if not (abs(x) < max_distance and abs(y) < max_distance):
+        return False, 0, 0, z
+    return True, int(math.floor(x / cell_m)), int(math.floor(y / cell_m)), z
+
+
 @nb.njit(cache=True)
 def cell_bounds(p, cell_m, max_distance):
     """``(count, ix_min, ix_max, iy_min, iy_max)`` over the used points (count 0: none)."""
@@ -26,13 +38,9 @@ def cell_bounds(p, cell_m, max_distance):
     x0 = y0 = np.iinfo(np.int64).max
     x1 = y1 = np.iinfo(np.int64).min
     for i in range(p.shape[0]):
-        x, y, z = p[i, 0], p[i, 1], p[i, 2]
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        used, ix, iy, _ = _cell(p, i, cell_m, max_distance)
+        if not used:
             continue
-        if not (abs(x) < max_distance and abs(y) < max_distance):
-            continue
-        ix = int(math.floor(x / cell_m))
-        iy = int(math.floor(y / cell_m))
         count += 1
         x0 = min(x0, ix)
         x1 = max(x1, ix)
@@ -47,12 +55,10 @@ def dense_cells(p, cell_m, max_distance, highest, x0, y0, nx, ny):
     zc = np.empty(nx * ny, np.float64)
     nc = np.zeros(nx * ny, np.int32)
     for i in range(p.shape[0]):
-        x, y, z = p[i, 0], p[i, 1], p[i, 2]
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        used, cx, cy, z = _cell(p, i, cell_m, max_distance)
+        if not used:
             continue
-        if not (abs(x) < max_distance and abs(y) < max_distance):
-            continue
-        k = (int(math.floor(y / cell_m)) - y0) * nx + (int(math.floor(x / cell_m)) - x0)
+        k = (cy - y0) * nx + (cx - x0)
         c = nc[k]
         if c == 0 or (z > zc[k] if highest else z < zc[k]):
             zc[k] = z
@@ -105,13 +111,9 @@ def hashed_cells(p, cell_m, max_distance, highest):
     m = 0
     last = -1  # slot of the previous point (consecutive points often share a cell)
     for i in range(p.shape[0]):
-        x, y, z = p[i, 0], p[i, 1], p[i, 2]
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        used, cx, cy, z = _cell(p, i, cell_m, max_distance)
+        if not used:
             continue
-        if not (abs(x) < max_distance and abs(y) < max_distance):
-            continue
-        cx = int(math.floor(x / cell_m))
-        cy = int(math.floor(y / cell_m))
         if last >= 0 and ix[last] == cx and iy[last] == cy:
             s = last
         else:
