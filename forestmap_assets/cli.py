@@ -177,8 +177,41 @@ def cmd_init(args) -> int:
     return 0
 
 
+def _start_workers_early(args) -> None:
+    """Start the worker processes' fork server before this process imports Dagster (issue 16:
+    both import side by side; the workers then fork ready), when the run will likely use
+    workers: the in_process executor, more than one worker, more than one scan (or an E57 file,
+    which may hold several), and not a campaign whose last session left it settled with no file
+    touched since (likely nothing to do: the server would only slow that run down). Anything
+    unclear: leave it to the run."""
+    if args.executor != "in_process" or (args.workers or os.cpu_count() or 1) < 2:
+        return
+    try:
+        import yaml
+
+        from forestmap_assets.io.home import campaign_key, dagster_home
+
+        root = Path(args.campaign)
+        doc = yaml.safe_load((root / "campaign.yaml").read_text())
+        scans = doc.get("scans") or []
+        paths = [str(s.get("path", "") if isinstance(s, dict) else s) for s in scans]
+        if len(paths) < 2 and not any(p.lower().endswith(".e57") for p in paths):
+            return
+        settled = dagster_home() / "settled" / f"{campaign_key(str(doc.get('name', root.name)))}.txt"
+        if settled.exists():
+            files = [root / "campaign.yaml", *(root / p for p in paths)]
+            if settled.stat().st_mtime > max(f.stat().st_mtime for f in files if f.exists()):
+                return
+    except Exception:  # a bad campaign is reported by the run, with its file and field
+        return
+    from forestmap_assets.orchestration import forkserver
+
+    forkserver.start()
+
+
 def cmd_run(args) -> int:
     started = time.perf_counter()
+    _start_workers_early(args)
     from forestmap_assets.orchestration.runner import run_campaign
     from forestmap_assets.outputs.progress import Progress, use
 
@@ -189,6 +222,7 @@ def cmd_run(args) -> int:
         summary = run_campaign(args.campaign, executor=args.executor, progress=progress,
                                workers=args.workers, dask_address=args.dask_address,
                                idle=None if args.no_report else _warm_exports)
+    ran = time.perf_counter()
     if summary.not_built:
         _say(args, f"not yet built in this version of forestmap: {', '.join(summary.not_built)}")
     ids = set(summary.campaign.scan_ids)
@@ -228,8 +262,8 @@ def cmd_run(args) -> int:
     from forestmap_assets.io.store import default_store_url
 
     _say(args, f"asset store: {default_store_url()}; run history: {os.environ.get('DAGSTER_HOME')} (forestmap ui)")
-    total = time.perf_counter() - started
-    _say(args, f"done in {total:.1f} s (stages {summary.seconds:.1f} s, exports {total - summary.seconds:.1f} s)")
+    now = time.perf_counter()
+    _say(args, f"done in {now - started:.1f} s (stages {summary.seconds:.1f} s, exports {now - ran:.1f} s)")
     return _left_out(summary)
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import yaml
 
-from forestmap_assets.io.home import file_digest
+from forestmap_assets.io.home import campaign_key, file_digest
 from forestmap_assets.io.scan_poses import PoseError, e57_poses, parse_pose
 from forestmap_assets.params import Params, ParamsError, resolve_params
 
@@ -91,8 +91,7 @@ class Campaign:
     @property
     def key(self) -> str:
         """Name usable as a Dagster asset-key prefix and storage folder: ``[A-Za-z0-9_]+``."""
-        key = re.sub(r"[^A-Za-z0-9_]", "_", self.name)
-        return key if key and not key[0].isdigit() else f"c_{key}"
+        return campaign_key(self.name)
 
     @property
     def prior_note(self) -> str:

@@ -8,10 +8,22 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 from pathlib import Path
 
 DEFAULT_HOME = "~/.forestmap"
 DIGESTS = "file_digests.json"
+
+
+def campaign_key(name: str) -> str:
+    """A campaign name usable as a Dagster asset-key prefix and storage folder: ``[A-Za-z0-9_]+``."""
+    key = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return key if key and not key[0].isdigit() else f"c_{key}"
+
+
+def dagster_home() -> Path:
+    """The Dagster instance's folder: ``$DAGSTER_HOME``, else ``<forestmap home>/dagster``."""
+    return Path(os.environ.get("DAGSTER_HOME") or forestmap_home() / "dagster")
 
 
 def forestmap_home() -> Path:

@@ -14,7 +14,7 @@ from dagster import DagsterInstance
 
 from forestmap_assets.assets.common import PAIR_STAGES, asset_key, pair_partitions, scan_partitions
 from forestmap_assets.io.campaign import Campaign
-from forestmap_assets.io.store import forestmap_home
+from forestmap_assets.io.home import dagster_home
 
 _INSTANCES: dict[str, DagsterInstance] = {}
 
@@ -26,9 +26,8 @@ def get_instance() -> DagsterInstance:
     A new home gets a ``dagster.yaml`` with telemetry and the UI's welcome dialog off and the
     engine's console chatter at WARNING (embedded SQLite storage; run logs are kept in full).
     """
-    if not os.environ.get("DAGSTER_HOME"):
-        os.environ["DAGSTER_HOME"] = str(forestmap_home() / "dagster")
-    home = Path(os.environ["DAGSTER_HOME"])
+    home = dagster_home()
+    os.environ["DAGSTER_HOME"] = str(home)
     home.mkdir(parents=True, exist_ok=True)
     config = home / "dagster.yaml"
     if not config.exists():

@@ -25,6 +25,7 @@ from dagster._core.execution.api import (
 from forestmap_assets.assets.common import asset_key, job_name
 from forestmap_assets.io.campaign import Campaign, load_campaign
 from forestmap_assets.io.store import forget_recent
+from forestmap_assets.orchestration import forkserver as fork_server
 from forestmap_assets.orchestration.events import step_failure_reason
 from forestmap_assets.orchestration.instance import (
     sync_pair_partitions,
@@ -264,15 +265,14 @@ class Session:
 
     def _in_process_pool(self) -> ProcessPoolExecutor:
         """The session's workers for in_process runs, kept for all its waves: started from a fork
-        server that has only imported forestmap (this process may have used OpenMP, which a fork
-        must not inherit), the cores shared out among them."""
+        server that has only imported libraries (:mod:`.forkserver`; this process may have used
+        OpenMP, which a fork must not inherit), the cores shared out among them."""
         with self._pool_lock:
             return self._start_pool()
 
     def _start_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
-            ctx = multiprocessing.get_context("forkserver")
-            ctx.set_forkserver_preload(["forestmap_assets.orchestration.session"])
+            ctx = fork_server.context()  # started early by `forestmap run`, else now
             queue = ctx.Queue()
             threads = max(1, (os.cpu_count() or 1) // self.workers)
             self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
@@ -359,10 +359,14 @@ def _init_worker(queue, threads: int = 0, environ: dict | None = None) -> None:
     if environ is not None:
         os.environ.clear()
         os.environ.update(environ)
-    if threads:
+    if threads:  # starts numba's threads: without the warning about open3d's older TBB
+        import warnings
+
         import numba
 
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     server = forkserver._forkserver
     server._forkserver_address = server._forkserver_alive_fd = server._forkserver_pid = None
     server._inherited_fds = None

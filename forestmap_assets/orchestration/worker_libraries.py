@@ -1,0 +1,29 @@
+"""What every worker process needs, imported once in the fork server that forks them
+(:mod:`.forkserver`): the session (Dagster and the asset modules), Open3D and SciPy's k-d trees
+(the per-scan stages), Dagster's SQLite storage (the worker's instance) and numba's CPU target
+(initialised once, about 0.4 s, instead of at each worker's first compiled kernel). Nothing here
+starts a thread, so the fork server may fork after it."""
+
+from __future__ import annotations
+
+import open3d  # noqa: F401
+import scipy.spatial  # noqa: F401
+from dagster._core.storage.event_log.sqlite.sqlite_event_log import (  # noqa: F401
+    SqliteEventLogStorage,
+)
+from dagster._core.storage.runs.sqlite.sqlite_run_storage import SqliteRunStorage  # noqa: F401
+from dagster._core.storage.sqlite_storage import DagsterSqliteStorage  # noqa: F401
+
+import forestmap_assets.orchestration.session  # noqa: F401
+
+
+def _numba_target() -> None:
+    try:
+        from numba.core.registry import cpu_target
+
+        cpu_target.target_context.refresh()
+    except Exception:  # an internal of numba: without it the first kernel pays instead
+        pass
+
+
+_numba_target()

@@ -1,0 +1,78 @@
+"""`forestmap run` starts the workers' fork server before it imports Dagster only when the run
+will likely use workers (issue 16): several scans, the in_process executor, more than one
+worker, and not a campaign left settled with no file touched since (a no-op run)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import pytest
+
+from forestmap_assets import cli
+from forestmap_assets.orchestration import forkserver
+
+
+@pytest.fixture
+def started(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(forkserver, "start", lambda: calls.append(True))
+    monkeypatch.setenv("DAGSTER_HOME", str(tmp_path / "dagster"))
+    return calls
+
+
+def _campaign(tmp_path, n_scans: int, name: str = "plot 7"):
+    root = tmp_path / f"camp{n_scans}"
+    (root / "scans").mkdir(parents=True)
+    lines = [f"name: {name}", "scans:"]
+    for i in range(n_scans):
+        (root / "scans" / f"s{i}.ply").write_text("ply\n")
+        lines.append(f"- {{id: s{i}, path: scans/s{i}.ply}}")
+    (root / "campaign.yaml").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def _args(root, **kw):
+    return argparse.Namespace(**{"executor": "in_process", "workers": 2, "campaign": str(root), **kw})
+
+
+def test_starts_for_a_campaign_of_several_scans(started, tmp_path):
+    cli._start_workers_early(_args(_campaign(tmp_path, 3)))
+    assert started == [True]
+
+
+@pytest.mark.parametrize("kw", [{"workers": 1}, {"executor": "dask"}, {"executor": "multiprocess"}])
+def test_not_without_in_process_workers(started, tmp_path, kw):
+    cli._start_workers_early(_args(_campaign(tmp_path, 3), **kw))
+    assert started == []
+
+
+def test_not_for_one_scan_or_a_bad_campaign(started, tmp_path):
+    cli._start_workers_early(_args(_campaign(tmp_path, 1)))
+    cli._start_workers_early(_args(tmp_path / "missing"))
+    bad = _campaign(tmp_path, 2)
+    (bad / "campaign.yaml").write_text("scans: [: broken\n")
+    cli._start_workers_early(_args(bad))
+    assert started == []
+
+
+def test_settled_campaign_untouched_since_is_left_alone(started, tmp_path):
+    root = _campaign(tmp_path, 3)
+    settled = tmp_path / "dagster" / "settled" / "plot_7.txt"  # Campaign.key of "plot 7"
+    settled.parent.mkdir(parents=True)
+    settled.write_text("key")
+    later = time.time() + 10
+    os.utime(settled, (later, later))
+    cli._start_workers_early(_args(root))
+    assert started == []
+    os.utime(root / "scans" / "s1.ply", (later + 5, later + 5))  # a scan changed since
+    cli._start_workers_early(_args(root))
+    assert started == [True]
+
+
+def test_campaign_key_is_the_one_of_the_campaign():
+    from forestmap_assets.io.home import campaign_key
+
+    assert campaign_key("plot 7") == "plot_7"
+    assert campaign_key("2024-plot") == "c_2024_plot"
