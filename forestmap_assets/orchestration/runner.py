@@ -184,11 +184,13 @@ def _run(
         accounted = 0
         depends = _dependencies(parents, granularity)
         while True:
-            if pair_stages:
-                session.sync_pairs()
-            pairs_now = partitions_of(instance, campaign, "pair")
             ran = {stage for stage, _ in summary.ran[accounted:]}
             accounted = len(summary.ran)
+            # the pair partitions and their inputs' fingerprints change only with the pair lists
+            # and the scans' stages the pairs read (about 200 queries on 50 scans: not each wave)
+            if pair_stages and (not states or ran & {*PAIR_LISTS, *PAIR_SCAN_INPUTS}):
+                session.sync_pairs()
+            pairs_now = partitions_of(instance, campaign, "pair")
             read = None if not states else ran | _readers_of(ran, depends, stages_all)
             if read is not None and pairs_now != read_pairs:  # pairs added or dropped
                 states = {k: v for k, v in states.items() if granularity.get(k[0]) != "pair"}
