@@ -147,3 +147,44 @@ def hashed_cells(p, cell_m, max_distance, highest):
         nc[s] = c + 1
         last = s
     return ix[:m].copy(), iy[:m].copy(), zc[:m].copy(), nc[:m].copy()
+
+
+@nb.njit(cache=True, inline="always")
+def _placed(ix, iy, z, k, q, ox, oy, cell_m, pose):
+    """Global ``(x, y, z)`` of sample ``q`` of source cell ``k`` (:func:`merged_cells`), with the
+    arithmetic of the numpy formulation it replaced."""
+    lx = (ix[k] + ox[q]) * cell_m
+    ly = (iy[k] + oy[q]) * cell_m
+    return pose[0] * lx - pose[1] * ly + pose[2], pose[1] * lx + pose[0] * ly + pose[3], z[k] + pose[4]
+
+
+@nb.njit(cache=True)
+def merged_cells(ix, iy, z, starts, poses, ox, oy, cell_m, highest, max_cells):
+    """Lowest (``highest``: highest) z per global cell of the per-scan elevation cells placed
+    with their scans' poses (:func:`~forestmap_assets.core.features.elevation.merge_elevation`):
+    cells ``starts[s]:starts[s + 1]`` of ``ix, iy, z`` belong to scan ``s``, whose pose row is
+    ``cos h, sin h, x, y, z``; each cell is ``ox, oy`` samples. Returns the grid ``(ny, nx)``
+    (NaN: empty) and its origin cell ``gx0, gy0``; an empty ``(0, 0)`` grid when the box has
+    more than ``max_cells`` cells (the caller then bins by sorting)."""
+    gx0 = gy0 = np.iinfo(np.int64).max
+    gx1 = gy1 = np.iinfo(np.int64).min
+    for s in range(starts.size - 1):
+        for k in range(starts[s], starts[s + 1]):
+            for q in range(ox.size):
+                x, y, _ = _placed(ix, iy, z, k, q, ox, oy, cell_m, poses[s])
+                cx, cy = int(math.floor(x / cell_m)), int(math.floor(y / cell_m))
+                gx0, gx1, gy0, gy1 = min(gx0, cx), max(gx1, cx), min(gy0, cy), max(gy1, cy)
+    if gx1 < gx0:
+        return np.full((0, 0), np.nan), 0, 0
+    nx, ny = gx1 - gx0 + 1, gy1 - gy0 + 1
+    if nx * ny > max_cells:
+        return np.full((0, 0), np.nan), gx0, gy0
+    out = np.full(nx * ny, np.nan)
+    for s in range(starts.size - 1):
+        for k in range(starts[s], starts[s + 1]):
+            for q in range(ox.size):
+                x, y, zz = _placed(ix, iy, z, k, q, ox, oy, cell_m, poses[s])
+                c = (int(math.floor(y / cell_m)) - gy0) * nx + int(math.floor(x / cell_m)) - gx0
+                if math.isnan(out[c]) or (zz > out[c] if highest else zz < out[c]):
+                    out[c] = zz
+    return out.reshape(ny, nx), gx0, gy0

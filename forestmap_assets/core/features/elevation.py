@@ -144,13 +144,31 @@ def merge_elevation(
     spread over it rather than by its centre only (``supersample=1``), so that a rotated grid
     leaves no aliasing holes when re-binned at the same cell size.
     """
-    xs, ys, zs = [], [], []
+    from forestmap_assets.core.features import _elevation_kernels as kern
+
     k = max(1, int(supersample))
     offs = (np.arange(k) + 0.5) / k
     ox, oy = (a.ravel() for a in np.meshgrid(offs, offs, indexing="xy"))
-    for table, pose in grids:
-        if len(table) == 0:
-            continue
+    used = [(table, pose) for table, pose in grids if len(table)]
+    if not used:
+        return ElevationGrid(np.full((0, 0), np.nan), 0.0, 0.0, float(cell_m), mode)
+    cols = {c: np.concatenate([t[c].to_numpy(dtype=np.float64) for t, _ in used]) for c in ("ix", "iy", "z")}
+    starts = np.cumsum([0] + [len(t) for t, _ in used])
+    poses = np.array([(np.cos(np.radians(float(h))), np.sin(np.radians(float(h))), float(px), float(py), float(pz))
+                      for _, (px, py, pz, h) in used])
+    # one pass for the box, one for the min (max) per cell; no per-sample arrays (51 scans:
+    # 8 s of sorting 20 M samples before, issue 17)
+    out, gx0, gy0 = kern.merged_cells(cols["ix"], cols["iy"], cols["z"], starts, poses, ox, oy, float(cell_m),
+                                      mode == "highest", DENSE_MAX_CELLS)
+    if out.size == 0:  # a box too large for a dense grid: bin by sorting the samples
+        out, gx0, gy0 = _merge_sorted(used, ox, oy, float(cell_m), mode)
+    return ElevationGrid(out, float(gx0 * cell_m), float(gy0 * cell_m), float(cell_m), mode)
+
+
+def _merge_sorted(used, ox, oy, cell_m: float, mode: Mode) -> tuple[np.ndarray, int, int]:
+    """:func:`merge_elevation` by sorting every sample (memory ~ the samples, not the box)."""
+    xs, ys, zs = [], [], []
+    for table, pose in used:
         px, py, pz, heading = (float(v) for v in pose)
         ix = table["ix"].to_numpy(dtype=np.float64)[:, None]
         iy = table["iy"].to_numpy(dtype=np.float64)[:, None]
@@ -160,19 +178,15 @@ def merge_elevation(
         xs.append(c * lx - s * ly + px)
         ys.append(s * lx + c * ly + py)
         zs.append(np.repeat(table["z"].to_numpy(dtype=np.float64) + pz, ox.size))
-    if not xs:
-        return ElevationGrid(np.full((0, 0), np.nan), 0.0, 0.0, float(cell_m), mode)
     x, y, z = np.concatenate(xs), np.concatenate(ys), np.concatenate(zs)
     gx = np.floor(x / cell_m).astype(np.int64)
     gy = np.floor(y / cell_m).astype(np.int64)
     gx0, gy0 = gx.min(), gy.min()
     nx, ny = int(gx.max() - gx0 + 1), int(gy.max() - gy0 + 1)
-    keys = (gy - gy0) * nx + (gx - gx0)
-    uniq, zc, _ = _combine(keys, z, mode)
+    uniq, zc, _ = _combine((gy - gy0) * nx + (gx - gx0), z, mode)
     out = np.full(ny * nx, np.nan)
     out[uniq] = zc
-    x0, y0 = float(gx0 * cell_m), float(gy0 * cell_m)
-    return ElevationGrid(out.reshape(ny, nx), x0, y0, float(cell_m), mode)
+    return out.reshape(ny, nx), int(gx0), int(gy0)
 
 
 def render_grid(grid: ElevationGrid, cell_m: float = 0.6, n_lowest: int = 5) -> ElevationGrid:
