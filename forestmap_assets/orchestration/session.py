@@ -219,12 +219,13 @@ class Session:
                 self.progress(f"  {where}run FAILED: {run_failure or 'run failed'}")
         return ok
 
-    def sync_pairs(self) -> None:
+    def sync_pairs(self) -> dict[str, str]:
         """Pair partitions matched to the stored pair lists, their inputs' fingerprints observed
-        (issue 17)."""
+        (issue 17); returns the pairs whose fingerprints changed."""
         sync_pair_partitions(self.instance, self.campaign, self.store_url)
-        observe_pair_inputs(self.instance, self.campaign,
-                            changed_pair_inputs(self.campaign, self.instance, self.store_url))
+        changed = changed_pair_inputs(self.campaign, self.instance, self.store_url)
+        observe_pair_inputs(self.instance, self.campaign, changed)
+        return changed
 
     @property
     def can_run_late(self) -> bool:
