@@ -189,7 +189,7 @@ def _start_workers_early(args) -> None:
     try:
         import yaml
 
-        from forestmap_assets.io.home import campaign_key, dagster_home
+        from forestmap_assets.io.home import campaign_key, dagster_home, settled_file
 
         root = Path(args.campaign)
         doc = yaml.safe_load((root / "campaign.yaml").read_text())
@@ -197,7 +197,7 @@ def _start_workers_early(args) -> None:
         paths = [str(s.get("path", "") if isinstance(s, dict) else s) for s in scans]
         if len(paths) < 2 and not any(p.lower().endswith(".e57") for p in paths):
             return
-        settled = dagster_home() / "settled" / f"{campaign_key(str(doc.get('name', root.name)))}.txt"
+        settled = settled_file(dagster_home(), campaign_key(str(doc.get("name", root.name))))
         if settled.exists():
             files = [root / "campaign.yaml", *(root / p for p in paths)]
             if settled.stat().st_mtime > max(f.stat().st_mtime for f in files if f.exists()):

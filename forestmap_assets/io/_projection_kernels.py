@@ -12,6 +12,7 @@ order, so a pass touches every page)."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import mmap
 import warnings
@@ -31,12 +32,19 @@ def _touch(a):
 _THREADS: list[bool] = []
 
 
+@contextlib.contextmanager
+def without_tbb_warning():
+    """Starting numba's thread pool warns about the older TBB that open3d loads (numba falls back
+    to OpenMP); this leaves the warning out."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
+        yield
+
+
 def start_threads() -> None:
-    """Start numba's thread pool (once, before the first parallel kernel) without its warning
-    about the older TBB that open3d loads (it falls back to OpenMP)."""
+    """Start numba's thread pool (once, before the first parallel kernel), quietly."""
     if not _THREADS:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
+        with without_tbb_warning():
             _touch(np.zeros(2))
         _THREADS.append(True)
 

@@ -26,6 +26,12 @@ def dagster_home() -> Path:
     return Path(os.environ.get("DAGSTER_HOME") or forestmap_home() / "dagster")
 
 
+def settled_file(dagster_folder: Path | str, key: str) -> Path:
+    """Where a campaign (its :func:`campaign_key`) is recorded as settled: every stage fresh at
+    the end of its last session (:mod:`forestmap_assets.orchestration.instance`)."""
+    return Path(dagster_folder) / "settled" / f"{key}.txt"
+
+
 def forestmap_home() -> Path:
     """The project's home folder: ``$FORESTMAP_HOME`` or ``~/.forestmap``."""
     return Path(os.environ.get("FORESTMAP_HOME", DEFAULT_HOME)).expanduser()

@@ -14,7 +14,7 @@ from dagster import DagsterInstance
 
 from forestmap_assets.assets.common import PAIR_STAGES, asset_key, pair_partitions, scan_partitions
 from forestmap_assets.io.campaign import Campaign
-from forestmap_assets.io.home import dagster_home
+from forestmap_assets.io.home import dagster_home, settled_file
 
 _INSTANCES: dict[str, DagsterInstance] = {}
 
@@ -136,7 +136,7 @@ def settled_key(instance: DagsterInstance, campaign: Campaign, defs, store_url: 
 
 
 def _settled_path(instance: DagsterInstance, campaign: Campaign) -> Path:
-    return Path(instance.root_directory) / "settled" / f"{campaign.key}.txt"
+    return settled_file(instance.root_directory, campaign.key)
 
 
 def is_settled(instance: DagsterInstance, campaign: Campaign, key: str) -> bool:

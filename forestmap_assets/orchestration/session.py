@@ -360,13 +360,12 @@ def _init_worker(queue, threads: int = 0, environ: dict | None = None) -> None:
     if environ is not None:
         os.environ.clear()
         os.environ.update(environ)
-    if threads:  # starts numba's threads: without the warning about open3d's older TBB
-        import warnings
-
+    if threads:  # starts numba's threads
         import numba
 
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
+        from forestmap_assets.io._projection_kernels import without_tbb_warning
+
+        with without_tbb_warning():
             numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     server = forkserver._forkserver
     server._forkserver_address = server._forkserver_alive_fd = server._forkserver_pid = None

@@ -159,13 +159,12 @@ def _placed(ix, iy, z, k, q, ox, oy, cell_m, pose):
 
 
 @nb.njit(cache=True)
-def merged_cells(ix, iy, z, starts, poses, ox, oy, cell_m, highest, max_cells):
+def merged_cells(ix, iy, z, starts, poses, ox, oy, cell_m, highest):
     """Lowest (``highest``: highest) z per global cell of the per-scan elevation cells placed
     with their scans' poses (:func:`~forestmap_assets.core.features.elevation.merge_elevation`):
     cells ``starts[s]:starts[s + 1]`` of ``ix, iy, z`` belong to scan ``s``, whose pose row is
     ``cos h, sin h, x, y, z``; each cell is ``ox, oy`` samples. Returns the grid ``(ny, nx)``
-    (NaN: empty) and its origin cell ``gx0, gy0``; an empty ``(0, 0)`` grid when the box has
-    more than ``max_cells`` cells (the caller then bins by sorting)."""
+    over the samples' box (NaN: empty) and its origin cell ``gx0, gy0``."""
     gx0 = gy0 = np.iinfo(np.int64).max
     gx1 = gy1 = np.iinfo(np.int64).min
     for s in range(starts.size - 1):
@@ -177,8 +176,6 @@ def merged_cells(ix, iy, z, starts, poses, ox, oy, cell_m, highest, max_cells):
     if gx1 < gx0:
         return np.full((0, 0), np.nan), 0, 0
     nx, ny = gx1 - gx0 + 1, gy1 - gy0 + 1
-    if nx * ny > max_cells:
-        return np.full((0, 0), np.nan), gx0, gy0
     out = np.full(nx * ny, np.nan)
     for s in range(starts.size - 1):
         for k in range(starts[s], starts[s + 1]):

@@ -77,16 +77,6 @@ def _points(data: RangeImage | np.ndarray | pd.DataFrame) -> np.ndarray:
     return np.ascontiguousarray(pts, dtype=np.float64)
 
 
-def _combine(
-    keys: np.ndarray, z: np.ndarray, mode: Mode
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Lowest (or highest) ``z`` and count per distinct integer key (vectorised)."""
-    order = np.lexsort((z if mode == "lowest" else -z, keys))
-    k, zs = keys[order], z[order]
-    uniq, first, counts = np.unique(k, return_index=True, return_counts=True)
-    return uniq, zs[first], counts
-
-
 def elevation_grid(
     data: RangeImage | np.ndarray | pd.DataFrame,
     params: ElevationParams,
@@ -159,34 +149,8 @@ def merge_elevation(
     # one pass for the box, one for the min (max) per cell; no per-sample arrays (51 scans:
     # 8 s of sorting 20 M samples before, issue 17)
     out, gx0, gy0 = kern.merged_cells(cols["ix"], cols["iy"], cols["z"], starts, poses, ox, oy, float(cell_m),
-                                      mode == "highest", DENSE_MAX_CELLS)
-    if out.size == 0:  # a box too large for a dense grid: bin by sorting the samples
-        out, gx0, gy0 = _merge_sorted(used, ox, oy, float(cell_m), mode)
+                                      mode == "highest")
     return ElevationGrid(out, float(gx0 * cell_m), float(gy0 * cell_m), float(cell_m), mode)
-
-
-def _merge_sorted(used, ox, oy, cell_m: float, mode: Mode) -> tuple[np.ndarray, int, int]:
-    """:func:`merge_elevation` by sorting every sample (memory ~ the samples, not the box)."""
-    xs, ys, zs = [], [], []
-    for table, pose in used:
-        px, py, pz, heading = (float(v) for v in pose)
-        ix = table["ix"].to_numpy(dtype=np.float64)[:, None]
-        iy = table["iy"].to_numpy(dtype=np.float64)[:, None]
-        lx = ((ix + ox[None, :]) * cell_m).ravel()
-        ly = ((iy + oy[None, :]) * cell_m).ravel()
-        c, s = np.cos(np.radians(heading)), np.sin(np.radians(heading))
-        xs.append(c * lx - s * ly + px)
-        ys.append(s * lx + c * ly + py)
-        zs.append(np.repeat(table["z"].to_numpy(dtype=np.float64) + pz, ox.size))
-    x, y, z = np.concatenate(xs), np.concatenate(ys), np.concatenate(zs)
-    gx = np.floor(x / cell_m).astype(np.int64)
-    gy = np.floor(y / cell_m).astype(np.int64)
-    gx0, gy0 = gx.min(), gy.min()
-    nx, ny = int(gx.max() - gx0 + 1), int(gy.max() - gy0 + 1)
-    uniq, zc, _ = _combine((gy - gy0) * nx + (gx - gx0), z, mode)
-    out = np.full(ny * nx, np.nan)
-    out[uniq] = zc
-    return out.reshape(ny, nx), int(gx0), int(gy0)
 
 
 def render_grid(grid: ElevationGrid, cell_m: float = 0.6, n_lowest: int = 5) -> ElevationGrid:
