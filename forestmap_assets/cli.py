@@ -408,6 +408,8 @@ def _leave(code: int) -> None:
     complete by then (written atomically), the worker pools are shut down, and the interpreter's
     own teardown of the imported libraries would add about a second to every command."""
     logging.shutdown()
+    if (event_log := sys.modules.get("forestmap_assets.orchestration.event_log")) is not None:
+        event_log.close_all()  # no -wal / -shm files left beside the run history
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import json
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -15,27 +16,52 @@ from dagster import DagsterInstance
 from forestmap_assets.assets.common import PAIR_STAGES, asset_key, pair_partitions, scan_partitions
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.io.home import dagster_home, settled_file
+from forestmap_assets.io.writers import atomic_write
 
 _INSTANCES: dict[str, DagsterInstance] = {}
+
+# engine chatter of step subprocesses at WARNING (run logs are kept in full regardless); the
+# event log with open connections (orchestration/event_log.py: same files as Dagster's default)
+_OLD_CONFIG = (
+    "telemetry:\n  enabled: false\nnux:\n  enabled: false\n"
+    "python_logs:\n  python_log_level: WARNING\n"
+)
+_EVENT_LOG = (
+    "event_log_storage:\n"
+    "  module: forestmap_assets.orchestration.event_log\n"
+    "  class: PooledSqliteEventLogStorage\n"
+    "  config:\n"
+    "    base_dir: "
+)
+
+
+def home_config(home: Path) -> str:
+    """The ``dagster.yaml`` of a forestmap home (the event log's folder is written out: every
+    process, whatever its ``$DAGSTER_HOME``, must open the same one)."""
+    return _OLD_CONFIG + _EVENT_LOG + json.dumps(str(home.resolve() / "history" / "runs")) + "\n"
+
+
+def _outdated(text: str, home: Path) -> bool:
+    """A configuration forestmap wrote, for an earlier version or for this home at another place."""
+    return text == _OLD_CONFIG or (text.startswith(_OLD_CONFIG + _EVENT_LOG) and text != home_config(home))
 
 
 def get_instance() -> DagsterInstance:
     """Persistent instance: ``$DAGSTER_HOME`` if set, else ``<forestmap home>/dagster``; one per
     home and process (opening its storage costs ~0.4 s).
 
-    A new home gets a ``dagster.yaml`` with telemetry and the UI's welcome dialog off and the
-    engine's console chatter at WARNING (embedded SQLite storage; run logs are kept in full).
+    A new home gets a ``dagster.yaml`` with telemetry and the UI's welcome dialog off, the
+    engine's console chatter at WARNING (run logs are kept in full) and Dagster's SQLite event
+    log with its connections kept open (:mod:`~forestmap_assets.orchestration.event_log`, the
+    same files); a home made with the earlier default configuration, or moved, gets the new one.
     """
     home = dagster_home()
     os.environ["DAGSTER_HOME"] = str(home)
     home.mkdir(parents=True, exist_ok=True)
     config = home / "dagster.yaml"
-    if not config.exists():
-        # engine chatter of step subprocesses at WARNING; run logs are kept in full regardless
-        config.write_text(
-            "telemetry:\n  enabled: false\nnux:\n  enabled: false\n"
-            "python_logs:\n  python_log_level: WARNING\n"
-        )
+    if not config.exists() or _outdated(config.read_text(), home):
+        with atomic_write(config) as tmp:
+            tmp.write_text(home_config(home))
     st = config.stat()
     key = f"{home.resolve()}:{st.st_ino}:{st.st_mtime_ns}"  # a home made anew is opened anew
     if key not in _INSTANCES:
