@@ -268,12 +268,18 @@ def cmd_run(args) -> int:
 
 
 def _warm_exports() -> None:
-    """The libraries of map.png and report.html, imported while the campaign-level stages run
-    (about 1.5 s of the exports otherwise)."""
+    """The libraries of map.png and report.html, imported while this process waits for the
+    pairs (about 1.5 s of the exports otherwise), and matplotlib's fonts loaded by one small
+    figure (the campaign-level stages' pictures and the exports draw text)."""
     import pyvista.plotting  # noqa: F401
 
     import forestmap_assets.outputs.render  # noqa: F401
     import forestmap_assets.outputs.report  # noqa: F401
+    from forestmap_assets.outputs.figures.common import new_figure, png_bytes
+
+    fig = new_figure(1.0, 1.0)
+    fig.subplots().set_title("0.1 m")
+    png_bytes(fig, dpi=20)
 
 
 def _left_out(summary) -> int:

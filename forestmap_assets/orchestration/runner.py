@@ -79,8 +79,8 @@ def run_campaign(
     ``stages`` limits the work to those stages and what they read (default: all).
     ``share_namespace``: run a variant folder of a campaign in the original's store namespace on
     purpose (notebook 4); otherwise another folder with the same name is a one-line error.
-    ``idle``: work for a background thread of this process once the campaign-level stages after
-    the pairs start, when a core is free (the CLI imports the libraries of its exports).
+    ``idle``: work for a background thread of this process while it waits for the pairs, else
+    once the campaign-level stages start (the CLI imports the libraries of its exports).
 
     ``executor``: ``in_process`` (each run computes its steps in its own process; the scans' and
     then the pairs' runs side by side in ``workers`` worker processes, one after another in this
@@ -253,6 +253,9 @@ def _run(
                     progress(f"  {len(pairs)} pairs to register")
                     count_attempts(attempts, pairs)
                     count_attempts(attempts, late)
+                    if idle is not None:  # this process waits for the pairs meanwhile
+                        threading.Thread(target=idle, daemon=True).start()
+                        idle = None
                     session.run_partitions("pair", pairs, late=late)
                     continue
             if not level and (late or session.pending):
