@@ -268,6 +268,16 @@ def select_links(
     current = solve_network(cand.iloc[admitted], scans, covariance=covariance, iterate=iterate,
                             residual_sigmas=residual_sigmas, z_residual_sigmas=z_residual_sigmas,
                             **corr)
+    previous: MapSolution | None = None
+
+    def _solve(previous: MapSolution) -> MapSolution:
+        """The map of the admitted links, projected with ``previous``'s headings."""
+        return solve_network(cand.iloc[admitted], scans, headings=previous.headings(),
+                             heading_variances=previous.heading_variances(),
+                             covariance=covariance, iterate=iterate,
+                             residual_sigmas=residual_sigmas,
+                             z_residual_sigmas=z_residual_sigmas, **corr)
+
     for m in rank:  # 2. loop-closing links
         if status[m] != "unreached" or s_all[m] not in placed or r_all[m] not in placed:
             continue
@@ -286,11 +296,12 @@ def select_links(
         status[m], role[m], step[m] = "admitted", "loop", n_steps
         n_steps += 1
         admitted = np.flatnonzero(status == "admitted")
-        current = solve_network(cand.iloc[admitted], scans, headings=current.headings(),
-                                heading_variances=current.heading_variances(),
-                                covariance=covariance, iterate=iterate,
-                                residual_sigmas=residual_sigmas,
-                                z_residual_sigmas=z_residual_sigmas, **corr)
+        # the test solved this very map (the admitted links and this one, projected with the
+        # same headings): the next test starts from it; the map returned is solved again at the
+        # end from the same headings, with the rows and labels of the admitted links
+        previous, current = current, verdict.solution or _solve(current)
+    if previous is not None:
+        current = _solve(previous)
     unreached = status == "unreached"
     for m in np.flatnonzero(unreached):  # 3. links of sub-maps the network does not reach
         away = [x for x in (s_all[m], r_all[m]) if x not in placed]
