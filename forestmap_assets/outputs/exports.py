@@ -185,11 +185,13 @@ def write_exports(
     written: list[Path] = []
     omap = load_asset("optimal_map", campaign=campaign)
     poses = omap["poses"]
-    regs = load_asset("refined_registrations", campaign=campaign).get(  # what fed the map
-        "registrations", pd.DataFrame(columns=REGISTRATION_COLUMNS))  # none for a single scan
+    refined = load_asset("refined_registrations", campaign=campaign)  # what fed the map
+    regs = refined.get("registrations", pd.DataFrame(columns=REGISTRATION_COLUMNS))  # none: 1 scan
     residuals = load_asset("residual_checks", campaign=campaign)
     trees = load_asset("tree_list", campaign=campaign)
     integrated = load_asset("integrated_map", campaign=campaign)
+    stored = {"optimal_map": omap, "refined_registrations": refined, "residual_checks": residuals,
+              "tree_list": trees, "integrated_map": integrated}  # read once, for the report too
     cylinders = integrated["cylinders"].reindex(columns=CYLINDER_COLUMNS)
     grid = elevation_from_table(integrated["elevation"])
     reference = campaign.scan_ids[0]
@@ -244,7 +246,7 @@ def write_exports(
     if report:
         from forestmap_assets.outputs.report import write_report
 
-        steps.append(("report.html", lambda p: write_report(campaign, out, timings=timings)))
+        steps.append(("report.html", lambda p: write_report(campaign, out, timings=timings, stored=stored)))
     with prog.bar(len(steps), "exports", unit="file") as bar:
         for name, write in steps:
             result = write(out / name)

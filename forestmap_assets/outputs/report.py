@@ -17,8 +17,10 @@ import base64
 import html
 import json
 import os
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -54,7 +56,9 @@ details{margin:.5em 0}pre{background:#f7f7f7;padding:.6em;overflow:auto;font-siz
 
 
 
-def _load(name: str, campaign: Campaign):
+def _load(name: str, campaign: Campaign, stored: Mapping[str, Any] | None = None):
+    if stored is not None and name in stored:
+        return stored[name]
     try:
         return load_asset(name, campaign=campaign)
     except FileNotFoundError:
@@ -140,12 +144,14 @@ def _card(value, label: str, state: str = "") -> str:
 
 
 def build_report(
-    campaign: Campaign, out_dir: str | Path, *, timings: pd.DataFrame | None = None
+    campaign: Campaign, out_dir: str | Path, *, timings: pd.DataFrame | None = None,
+    stored: Mapping[str, Any] | None = None,
 ) -> str:
     """The HTML text of ``report.html`` for a materialised campaign (see the module docstring).
 
     Pictures already written to ``out_dir`` (``map.png``, ``elevation.png``) are embedded;
-    the network, residual and DBH figures are drawn here."""
+    the network, residual and DBH figures are drawn here. ``stored``: assets already read from
+    the store, by name (the exports pass theirs; the others are read here)."""
     from forestmap_assets.core.features.elevation import elevation_from_table
     from forestmap_assets.outputs.figures.elevation import elevation_figure
     from forestmap_assets.outputs.figures.mapping import (
@@ -155,11 +161,11 @@ def build_report(
     )
 
     out_dir = Path(out_dir)
-    omap = _load("optimal_map", campaign) or {}
-    regs_bundle = _load("refined_registrations", campaign) or {}
-    residuals = _load("residual_checks", campaign)
-    trees = _load("tree_list", campaign)
-    integrated = _load("integrated_map", campaign) or {}
+    omap = _load("optimal_map", campaign, stored) or {}
+    regs_bundle = _load("refined_registrations", campaign, stored) or {}
+    residuals = _load("residual_checks", campaign, stored)
+    trees = _load("tree_list", campaign, stored)
+    integrated = _load("integrated_map", campaign, stored) or {}
     poses = omap.get("poses")
     links = omap.get("links")
     regs = regs_bundle.get("registrations")
@@ -355,7 +361,7 @@ def build_report(
     else:
         add('<p class="note">(no tree)</p>')
 
-    vantage = _load("next_vantage_points", campaign)
+    vantage = _load("next_vantage_points", campaign, stored)
     if vantage is not None and len(vantage.get("coverage", [])):
         cov = vantage["coverage"].iloc[0]
         props = vantage["proposals"]
@@ -398,11 +404,13 @@ def build_report(
 
 
 def write_report(
-    campaign: Campaign, out_dir: str | Path, *, timings: pd.DataFrame | None = None
+    campaign: Campaign, out_dir: str | Path, *, timings: pd.DataFrame | None = None,
+    stored: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Write ``out_dir/report.html`` atomically; return its path."""
+    """Write ``out_dir/report.html`` atomically; return its path (``stored``: see
+    :func:`build_report`)."""
     out_dir = Path(out_dir)
-    text = build_report(campaign, out_dir, timings=timings)
+    text = build_report(campaign, out_dir, timings=timings, stored=stored)
     path = out_dir / "report.html"
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     out_dir.mkdir(parents=True, exist_ok=True)
