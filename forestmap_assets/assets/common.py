@@ -328,9 +328,11 @@ def cylinder_checks(table: pd.DataFrame, limits: ScanCheckThresholds) -> list[As
     ]
 
 
-def all_scans(stage_key) -> AssetIn:
-    """All scan partitions of a per-scan asset; a scan whose partition failed is left out."""
-    return AssetIn(key=stage_key, metadata={"allow_missing_partitions": True})
+def all_scans(stage_key, columns: list[str] | None = None) -> AssetIn:
+    """All scan partitions of a per-scan asset; a scan whose partition failed is left out.
+    ``columns``: read only these columns of each stored table."""
+    meta = {"allow_missing_partitions": True} | ({"columns": columns} if columns else {})
+    return AssetIn(key=stage_key, metadata=meta)
 
 
 def md_table(df: pd.DataFrame, floatfmt: str = ".3f") -> MetadataValue:

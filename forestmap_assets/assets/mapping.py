@@ -187,7 +187,7 @@ def mapping_assets(campaign: Campaign) -> list:
     @asset(
         key=key("tree_list"),
         ins={"integrated_map": AssetIn(key=key("integrated_map")),
-             **({"range_images": all_scans(key("range_images"))} if by_slice else {})},
+             **({"range_images": all_scans(key("range_images"), ["x", "y", "z"])} if by_slice else {})},
         group_name="map",
         code_version=code_version(campaign, "tree_list"),
         description="One row per physical tree, cylinders of all scans merged: stem position at "
@@ -204,10 +204,9 @@ def mapping_assets(campaign: Campaign) -> list:
         trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid)
         from_slice = 0
         if by_slice:
-            from forestmap_assets.core.mapping.stem_slices import merged_slice_dbh
+            from forestmap_assets.core.mapping.stem_slices import merged_slice_dbh, slice_clouds
 
-            clouds = {sid: np.column_stack([tbl.column(c).to_numpy() for c in "xyz"])
-                      for sid, tbl in (raw.get("range_images") or {}).items()}
+            clouds = slice_clouds(raw.get("range_images") or {}, integrated_map["scans"], trees, tp)
             trees, fits = merged_slice_dbh(trees, integrated_map["cylinders"], tree_of_cyl, clouds,
                                            integrated_map["scans"], tp)
             from_slice = int((fits["reason"] == "").sum())

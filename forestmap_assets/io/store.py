@@ -85,9 +85,10 @@ def write_table_atomic(table: pd.DataFrame | pa.Table, path: str | os.PathLike |
         raise
 
 
-def read_table(path: str | os.PathLike | UPath) -> pa.Table:
+def read_table(path: str | os.PathLike | UPath, columns: list[str] | None = None) -> pa.Table:
+    """A stored table (``columns``: only these)."""
     with UPath(path).open("rb") as f:
-        return pq.read_table(f)
+        return pq.read_table(f, columns=columns)
 
 
 def _local(path: UPath) -> bool:
@@ -292,9 +293,12 @@ class ParquetIOManager(UPathIOManager):
         if (table := _recalled(table_path)) is not None:
             return table
         if table_path.exists():
-            table = read_table(table_path)
+            # an input's metadata "columns": read only those (tree_list: x, y, z of the images)
+            columns = (getattr(context, "definition_metadata", None) or {}).get("columns")
+            table = read_table(table_path, columns=columns)
             if (table.schema.metadata or {}).get(b"forestmap.kind"):
-                _remember(table_path, table)
+                if columns is None:
+                    _remember(table_path, table)
                 return table  # keep Arrow metadata (e.g. range images)
             return table.to_pandas()
         bundle_path = self._bundle_path(path)

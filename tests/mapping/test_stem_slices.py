@@ -205,3 +205,32 @@ def test_gather_slices_keeps_the_band_and_the_gate():
     assert (np.abs(slices["z"] - 1.6) <= 0.1 + 1e-6).all()
     d = np.hypot(slices["x"] - table["x"].to_numpy()[slices["tree"]], slices["y"] - table["y"].to_numpy()[slices["tree"]])
     assert (d <= 1.5 * table["radius_m"].to_numpy()[slices["tree"]] + 0.05 + 1e-6).all()
+
+
+def test_slice_clouds_keep_what_the_slices_use():
+    """The tree list's clouds (:func:`slice_clouds`): only the points in the slices' height
+    band, from Arrow tables of x, y, z; the same DBH fits as from the whole clouds."""
+    import pyarrow as pa
+
+    from forestmap_assets.core.mapping.stem_slices import slice_clouds
+
+    rng = np.random.default_rng(11)
+    stems, ground, poses, clouds = _campaign(rng)
+    tables = {sid: pa.table({c: xyz[:, k] for k, c in enumerate("xyz")}) for sid, xyz in clouds.items()}
+    tables["unplaced"] = tables["s0"]
+    trees = pd.DataFrame({"tree_id": [1, 2], "x": [0.01, 3.0], "y": [0.0, 2.49], "z": [ground, ground],
+                          "dbh_m": [0.33, 0.17], "n_scans": [3, 3], "n_cylinders": [1, 1],
+                          "visible_length_m": [3.0, 3.0], "dbh_note": ["", ""]})
+    cyl = pd.DataFrame({"x0": [0.0, 3.0], "y0": [0.0, 2.5], "z0": [ground, ground], "x1": [0.0, 3.0],
+                        "y1": [0.0, 2.5], "z1": [ground + 3.0] * 2, "n_circles": [10, 10]})
+    tp = TreeParams(slice_min_coverage_deg=90.0)
+    kept = slice_clouds(tables, poses, trees, tp)
+    assert set(kept) == set(clouds)  # the unplaced scan is left out
+    for sid, xyz in kept.items():
+        z = xyz[:, 2].astype(np.float64) + poses.set_index("scan").at[sid, "z"]
+        assert 0 < len(xyz) < 0.5 * len(clouds[sid])
+        assert ((z >= ground + 1.3 - tp.slice_half_height_m) & (z <= ground + 1.3 + tp.slice_half_height_m)).all()
+    whole = merged_slice_dbh(trees, cyl, np.array([1, 2]), clouds, poses, tp)
+    band = merged_slice_dbh(trees, cyl, np.array([1, 2]), kept, poses, tp)
+    for a, b in zip(whole, band, strict=True):
+        pd.testing.assert_frame_equal(a, b)

@@ -37,12 +37,16 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.geometry import transform_points
+
+if TYPE_CHECKING:
+    import pyarrow as pa
 
 SLICE_COLUMNS = ["tree", "x", "y", "z", "scan"]
 
@@ -273,6 +277,27 @@ def slice_dbhs(trees: pd.DataFrame, slices: pd.DataFrame, sensors: np.ndarray, *
     fits = pd.DataFrame(rows, columns=["tree_id", "dbh_slice_m", "dbh_cylinders_m", "sd_m", "n_points",
                                        "coverage_deg", "rms_m", "reason"])
     return out, fits
+
+
+def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.DataFrame, tp,
+                 breast_height_m: float = 1.3) -> dict[str, np.ndarray]:
+    """The levelled points (n, 3) of each placed scan's table (columns ``x, y, z``, scanner
+    frame) that lie in the height band of any breast-height slice of ``trees``, the same test
+    as :func:`gather_slices` makes (so its slices do not change), before the points are
+    stacked: a scan's full cloud is several times larger than the band."""
+    zbh = trees["z"].to_numpy(float) + breast_height_m
+    if not len(zbh):
+        return {}
+    lo, hi = zbh.min() - tp.slice_half_height_m, zbh.max() + tp.slice_half_height_m
+    pose_z = dict(zip(poses["scan"].astype(str), poses["z"].to_numpy(float), strict=True))
+    out = {}
+    for sid, tbl in tables.items():
+        if sid not in pose_z:
+            continue
+        z = np.asarray(tbl.column("z").to_numpy(), np.float64) + pose_z[sid]
+        near = np.flatnonzero((z >= lo) & (z <= hi))
+        out[sid] = np.column_stack([tbl.column(c).to_numpy()[near] for c in "xyz"])
+    return out
 
 
 def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
