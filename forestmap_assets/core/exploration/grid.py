@@ -156,11 +156,13 @@ class ExplorationGrid:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=np.float64)
         m = w if measured is None else np.asarray(measured, dtype=np.float64)
-        idx, ok = self.flat_index(pts[:, 0], pts[:, 1], pts[:, 2])
-        self.counts += np.bincount(idx[ok], weights=w[ok], minlength=self.counts.size)
-        self.measured += np.bincount(idx[ok], weights=m[ok], minlength=self.counts.size)
         ix, iy, h, inside = self.heights(pts[:, 0], pts[:, 1], pts[:, 2])
         cell = ix * self.ny + iy
+        iz = np.floor((h - self.z_min) / self.dz).astype(np.int64)  # as flat_index
+        ok = inside & (iz >= 0) & (iz < self.nz)
+        idx = cell[ok] * self.nz + iz[ok]
+        self.counts += np.bincount(idx, weights=w[ok], minlength=self.counts.size)
+        self.measured += np.bincount(idx, weights=m[ok], minlength=self.counts.size)
         top = inside & (h >= self.z_min + self.nz * self.dz)
         self.above += np.bincount(cell[top], weights=w[top], minlength=self.nx * self.ny).reshape(
             self.shape
