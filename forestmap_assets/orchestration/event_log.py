@@ -59,9 +59,20 @@ _STORAGES: weakref.WeakSet = weakref.WeakSet()
 
 
 def close_all() -> None:
-    """Close every open database of this process (a command that leaves with ``os._exit``)."""
+    """Close every open database of this process (no -wal / -shm files left behind): at exit,
+    also of multiprocessing workers, and by a command that leaves with ``os._exit``."""
     for storage in list(_STORAGES):
         storage._close_all()
+
+
+_EXIT_HOOK: list[int] = []  # the process that registered close_all (a child starts afresh)
+
+
+def _track(storage: PooledSqliteEventLogStorage) -> None:
+    _STORAGES.add(storage)
+    if _EXIT_HOOK != [os.getpid()]:  # a multiprocessing child clears its parent's finalizers
+        multiprocessing.util.Finalize(None, close_all, exitpriority=10)
+        _EXIT_HOOK[:] = [os.getpid()]
 
 
 def _pragmas(dbapi_connection, _record) -> None:
@@ -82,9 +93,7 @@ class PooledSqliteEventLogStorage(SqliteEventLogStorage):
         self._tables: set[str] = set()
         self._template: bytes | None = None
         super().__init__(base_dir, inst_data)
-        # closed at exit, also in multiprocessing workers (no -wal / -shm files left behind)
-        multiprocessing.util.Finalize(self, self._close_all, exitpriority=10)
-        _STORAGES.add(self)
+        _track(self)  # closed at exit (close_all)
 
     @classmethod
     def config_type(cls):

@@ -138,9 +138,13 @@ class ExplorationGrid:
     def flat_index(self, x, y, z) -> tuple[np.ndarray, np.ndarray]:
         """Thesis update index ``ix*N_y*N_z + iy*N_z + iz`` and the mask of points inside B."""
         ix, iy, h, inside = self.heights(x, y, z)
-        iz = np.floor((h - self.z_min) / self.dz).astype(np.int64)
-        ok = inside & (iz >= 0) & (iz < self.nz)
+        iz, ok = self._levels(h, inside)
         return np.where(ok, (ix * self.ny + iy) * self.nz + iz, -1), ok
+
+    def _levels(self, h, inside) -> tuple[np.ndarray, np.ndarray]:
+        """Height level ``iz`` of each point and whether it lies inside B (all three axes)."""
+        iz = np.floor((h - self.z_min) / self.dz).astype(np.int64)
+        return iz, inside & (iz >= 0) & (iz < self.nz)
 
     def add_points(
         self,
@@ -158,8 +162,7 @@ class ExplorationGrid:
         m = w if measured is None else np.asarray(measured, dtype=np.float64)
         ix, iy, h, inside = self.heights(pts[:, 0], pts[:, 1], pts[:, 2])
         cell = ix * self.ny + iy
-        iz = np.floor((h - self.z_min) / self.dz).astype(np.int64)  # as flat_index
-        ok = inside & (iz >= 0) & (iz < self.nz)
+        iz, ok = self._levels(h, inside)  # flat_index, from the heights computed once
         idx = cell[ok] * self.nz + iz[ok]
         self.counts += np.bincount(idx, weights=w[ok], minlength=self.counts.size)
         self.measured += np.bincount(idx, weights=m[ok], minlength=self.counts.size)

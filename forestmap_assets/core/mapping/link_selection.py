@@ -270,10 +270,10 @@ def select_links(
                             **corr)
     previous: MapSolution | None = None
 
-    def _solve(previous: MapSolution) -> MapSolution:
-        """The map of the admitted links, projected with ``previous``'s headings."""
-        return solve_network(cand.iloc[admitted], scans, headings=previous.headings(),
-                             heading_variances=previous.heading_variances(),
+    def _solve(projection: MapSolution) -> MapSolution:
+        """The map of the admitted links, projected with ``projection``'s headings."""
+        return solve_network(cand.iloc[admitted], scans, headings=projection.headings(),
+                             heading_variances=projection.heading_variances(),
                              covariance=covariance, iterate=iterate,
                              residual_sigmas=residual_sigmas,
                              z_residual_sigmas=z_residual_sigmas, **corr)

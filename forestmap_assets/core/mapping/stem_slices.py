@@ -89,6 +89,11 @@ def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
     return np.clip(out, -max_slope, max_slope)
 
 
+def _in_band(z: np.ndarray, zbh: np.ndarray, half_height_m: float) -> np.ndarray:
+    """Global heights ``z`` within ``half_height_m`` of any breast height ``zbh`` range."""
+    return (z >= zbh.min() - half_height_m) & (z <= zbh.max() + half_height_m)
+
+
 def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame, *,
                   half_height_m: float = 0.1, gate_factor: float = 1.5,
                   gate_margin_m: float = 0.05) -> tuple[pd.DataFrame, np.ndarray]:
@@ -125,8 +130,7 @@ def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: 
             continue
         pose = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
         sensors[index] = pose[:2]
-        z = np.asarray(xyz[:, 2], np.float64) + pose[2]
-        near = (z >= zbh.min() - half_height_m) & (z <= zbh.max() + half_height_m)
+        near = _in_band(np.asarray(xyz[:, 2], np.float64) + pose[2], zbh, half_height_m)
         p = transform_points(np.asarray(xyz[near], np.float64), pose)
         _, k = tree.query(p[:, :2], distance_upper_bound=reach_max)
         hit = k < len(stems)
@@ -288,14 +292,13 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
     zbh = trees["z"].to_numpy(float) + breast_height_m
     if not len(zbh):
         return {}
-    lo, hi = zbh.min() - tp.slice_half_height_m, zbh.max() + tp.slice_half_height_m
     pose_z = dict(zip(poses["scan"].astype(str), poses["z"].to_numpy(float), strict=True))
     out = {}
     for sid, tbl in tables.items():
         if sid not in pose_z:
             continue
         z = np.asarray(tbl.column("z").to_numpy(), np.float64) + pose_z[sid]
-        near = np.flatnonzero((z >= lo) & (z <= hi))
+        near = np.flatnonzero(_in_band(z, zbh, tp.slice_half_height_m))
         out[sid] = np.column_stack([tbl.column(c).to_numpy()[near] for c in "xyz"])
     return out
 
