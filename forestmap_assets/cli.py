@@ -218,17 +218,30 @@ def cmd_run(args) -> int:
     if args.cloud_spacing < 0:
         raise UsageError(f"--cloud-spacing: expected a size >= 0 m, got {args.cloud_spacing:g}")
     progress = Progress(quiet=args.quiet)
+    options = {"cloud": None if args.no_cloud else args.cloud_spacing, "report": not args.no_report}
+    early: list[Path] = []  # the map's files, written before the where-to-scan-next stages end
+
+    def map_ready(summary) -> None:
+        if summary.not_built or _level_failure(summary):
+            return
+        from forestmap_assets.outputs.exports import write_exports
+
+        out = args.out or summary.campaign.root / "outputs"
+        early.extend(write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
+                                   picture=not args.no_report, progress=progress, parts="map"))
+        _say(args, f"map written to {out}: {', '.join(p.name for p in early)}"
+             + ("; where to scan next follows" if options["report"] else ""))
+
     with use(progress):  # steps running in this process (in_process executor) report into it
         summary = run_campaign(args.campaign, executor=args.executor, progress=progress,
                                workers=args.workers, dask_address=args.dask_address,
-                               idle=None if args.no_report else _warm_exports)
+                               idle=None if args.no_report else _warm_exports, map_ready=map_ready)
     ran = time.perf_counter()
     if summary.not_built:
         _say(args, f"not yet built in this version of forestmap: {', '.join(summary.not_built)}")
-    ids = set(summary.campaign.scan_ids)
     # a campaign-level or pair stage failed (a failed scan is left out, below)
-    if any(scan not in ids for _, scan, _ in summary.failures):
-        stage, scan, reason = next(f for f in summary.failures if f[1] not in ids)
+    if failure := _level_failure(summary):
+        stage, scan, reason = failure
         where = f"{stage}[{scan}]" if scan else stage
         more = f" (and {len(summary.failures) - 1} more failures)" if len(summary.failures) > 1 else ""
         raise UsageError(f"{where} failed: {reason}{more}")
@@ -246,15 +259,15 @@ def cmd_run(args) -> int:
         write_exports_stamp,
     )
 
-    options = {"cloud": None if args.no_cloud else args.cloud_spacing, "report": not args.no_report}
     key = exports_key(summary.campaign, latest_materialization_id(get_instance(), summary.campaign), options)
     if exports_current(out, key):
         print(f"outputs in {out} are up to date")
     else:
         timings = None if args.no_report else stage_timings_or_note(summary.campaign)
-        written = write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
-                                picture=not args.no_report, report=not args.no_report, progress=progress,
-                                timings=timings)
+        written = early if early and args.no_report else [
+            *early, *write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
+                                   picture=not args.no_report, report=not args.no_report,
+                                   progress=progress, timings=timings, parts="report" if early else "all")]
         write_exports_stamp(out, key, written)
         print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
     if summary.check_failures:
@@ -280,6 +293,12 @@ def _warm_exports() -> None:
     fig = new_figure(1.0, 1.0)
     fig.subplots().set_title("0.1 m")
     png_bytes(fig, dpi=20)
+
+
+def _level_failure(summary) -> tuple | None:
+    """The first failure of a campaign-level or pair stage (a failed scan is left out)."""
+    ids = set(summary.campaign.scan_ids)
+    return next((f for f in summary.failures if f[1] not in ids), None)
 
 
 def _left_out(summary) -> int:

@@ -73,6 +73,7 @@ def run_campaign(
     stages: list[str] | None = None,
     share_namespace: bool = False,
     idle: Callable[[], None] | None = None,
+    map_ready: Callable[[RunSummary], None] | None = None,
 ) -> RunSummary:
     """Materialise every missing or stale asset of a campaign, and nothing else.
 
@@ -81,6 +82,10 @@ def run_campaign(
     purpose (notebook 4); otherwise another folder with the same name is a one-line error.
     ``idle``: work for a background thread of this process while it waits for the pairs, else
     once the campaign-level stages start (the CLI imports the libraries of its exports).
+    ``map_ready``: called once, in this thread, when this session has changed the map (a pair or
+    a campaign-level stage ran) and only the where-to-scan-next stages are left (issue 16: they
+    never delay the map; the CLI writes the map's files here). Those stages then run beside it
+    in a worker when their per-scan inputs are done, else after it.
 
     ``executor``: ``in_process`` (each run computes its steps in its own process; the scans' and
     then the pairs' runs side by side in ``workers`` worker processes, one after another in this
@@ -116,12 +121,13 @@ def run_campaign(
             start,
             share_namespace,
             idle,
+            map_ready,
         )
 
 
 def _run(
     campaign, defs, instance, executor, store_url, progress, workers, dask_address, stages, start,
-    share_namespace=False, idle=None,
+    share_namespace=False, idle=None, map_ready=None,
 ) -> RunSummary:
     parents = stage_parents(defs, campaign)
     stages_all = campaign_stages(defs, campaign)
@@ -147,6 +153,9 @@ def _run(
         if any(granularity.get(p) == "pair" or p in after_pairs for p in parents[stage]):
             after_pairs.add(stage)
     late_stages = _late_stages(scan_stages, parents, granularity)
+    # the campaign-level where-to-scan-next stages (next_vantage_points) and what the map is
+    explore = _readers_of(set(late_stages), parents, stages_all) & set(level_stages)
+    map_stages = {*pair_stages, *(set(level_stages) - explore)}
     with contextlib.ExitStack() as stack:
         stack.enter_context(campaign_lock(instance, campaign, progress))
         if not share_namespace:
@@ -258,6 +267,20 @@ def _run(
                         idle = None
                     session.run_partitions("pair", pairs, late=late)
                     continue
+            if map_ready is not None and not pairs and level <= explore and any(
+                s in map_stages for s, _ in summary.ran
+            ):  # the map is final: its files first, the where-to-scan-next stages beside or after
+                if session.pending and session.late_done():  # collected, then read again
+                    session.wait_late()
+                    continue
+                if level and session.can_run_late and not late and not session.pending:
+                    run = [s for s in level_stages if s in level]
+                    count_attempts(attempts, {None: run})
+                    progress(f"  campaign: {', '.join(run)} (beside the map's files)")
+                    session.run_late_campaign(run)
+                    level = set()
+                map_ready(summary)
+                map_ready = None
             if not level and (late or session.pending):
                 if late:  # nothing else to do: the late stages run now
                     count_attempts(attempts, late)

@@ -292,6 +292,16 @@ class Session:
             close()
         self._pool, self._closers = None, []
 
+    def run_late_campaign(self, stages: list[str]) -> None:
+        """One campaign-level run of ``stages`` left running in a worker (:attr:`can_run_late`),
+        collected by :meth:`wait_late` (issue 16: next_vantage_points beside the map's files)."""
+        fut = self._in_process_pool().submit(_partition_worker, self._base(), "campaign", None, stages, 1)
+        self.pending.update({(stage, None): fut for stage in stages})
+
+    def late_done(self) -> bool:
+        """Whether every late run (:meth:`run_partitions`, :meth:`run_late_campaign`) has ended."""
+        return all(fut.done() for fut in self.pending.values())
+
     def wait_late(self) -> None:
         """Collect the late runs (:meth:`run_partitions`)."""
         pending, self.pending = self.pending, {}
@@ -398,8 +408,9 @@ def _warm_worker(base: tuple) -> None:
     _load_worker(base)
 
 
-def _partition_worker(base: tuple, kind: str, part: str, stages: list[str], concurrent_runs: int):
-    """One scan's or pair's run in a worker process; returns what the parent session records."""
+def _partition_worker(base: tuple, kind: str, part: str | None, stages: list[str], concurrent_runs: int):
+    """One scan's, pair's or (``part`` None) campaign-level run in a worker process; returns what
+    the parent session records."""
     folder, ref, executor, store_url, workers, dask_address, session_id = base
     _load_worker(base)
     session = Session(

@@ -167,8 +167,12 @@ def write_exports(
     report: bool = True,
     progress=None,
     timings: pd.DataFrame | None = None,
+    parts: str = "all",
 ) -> list[Path]:
     """Write every export that the stored assets allow; return the paths.
+
+    ``parts``: ``all``, ``map`` (all but report.html: the map's files, written before the
+    where-to-scan-next stages end, issue 16) or ``report`` (report.html alone).
 
     ``cloud_spacing_m``: voxel size of the point cloud exports (0 keeps every point, None
     writes no cloud). ``picture``: render ``map.png``; ``report``: write ``report.html``
@@ -247,6 +251,10 @@ def write_exports(
         from forestmap_assets.outputs.report import write_report
 
         steps.append(("report.html", lambda p: write_report(campaign, out, timings=timings, stored=stored)))
+    if parts not in ("all", "map", "report"):
+        raise ValueError(f"parts: expected all, map or report, got {parts!r}")
+    if parts != "all":
+        steps = [step for step in steps if (step[0] == "report.html") == (parts == "report")]
     with prog.bar(len(steps), "exports", unit="file") as bar:
         for name, write in steps:
             result = write(out / name)

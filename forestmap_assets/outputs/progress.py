@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import re
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -112,8 +113,10 @@ class Progress:
             from tqdm.auto import tqdm
 
             tqdm.write(message, file=self.out)
-        else:
-            print(message, file=self.out, flush=True)
+        else:  # one write under a lock: lines from the workers' drain thread stay whole
+            with _WRITE_LOCK:
+                self.out.write(message + "\n")
+                self.out.flush()
 
     @contextmanager
     def bar(self, total: int | None, desc: str, unit: str = "step") -> Iterator[Bar]:
@@ -178,6 +181,7 @@ class _Callback(Progress):
 
 
 _CURRENT: list[Progress] = []
+_WRITE_LOCK = threading.Lock()
 
 
 @contextmanager

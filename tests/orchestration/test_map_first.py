@@ -1,0 +1,33 @@
+"""The map's files before the where-to-scan-next stages (issue 16): ``run_campaign`` calls
+``map_ready`` once the map stages are done and next_vantage_points has not run yet; with workers
+it then runs beside the caller (in a worker), with one process after it."""
+
+from __future__ import annotations
+
+import pytest
+from helpers.orchestration import edit_manifest, materialised_copy
+
+from forestmap_assets.orchestration.runner import run_campaign
+
+
+@pytest.mark.parametrize("workers", [2, 1])
+def test_map_ready_comes_before_next_vantage_points(tmp_path, monkeypatch, workers):
+    root = materialised_copy(tmp_path, monkeypatch)
+    edit_manifest(root, params={"trees": {"dbh_method": "cylinders"}})  # a new tree list
+    seen = []
+
+    def map_ready(summary):
+        seen.append({s for s, _ in summary.ran})
+
+    lines = []
+    summary = run_campaign(root, progress=lines.append, workers=workers, map_ready=map_ready)
+    assert summary.failures == []
+    assert len(seen) == 1, seen
+    assert "tree_list" in seen[0] and "next_vantage_points" not in seen[0]
+    assert "next_vantage_points" in {s for s, _ in summary.ran}
+    beside = any("beside the map's files" in line for line in lines)
+    assert beside == (workers > 1), lines
+    # nothing of the map ran again: no second call
+    seen.clear()
+    assert run_campaign(root, progress=lambda m: None, map_ready=map_ready).ran == []
+    assert seen == []
