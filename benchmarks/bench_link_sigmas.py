@@ -1,9 +1,10 @@
 """Where the sigma of a refined link comes from, per data source (issue 19).
 
 The two-way refinement's sigma (core/registration/two_way.py) is
-``two_way_sd_scale x sqrt((sd_inflation x H)^2 + (d / 2)^2)``, floored, where ``H`` is the larger
-point-to-plane Hessian sd of the two directions (inflated for correlated neighbours) and ``d``
-the disagreement of the two directions. For every accepted pair of a stored run this refines
+``two_way_sd_scale x sqrt(H^2 + (d / 2)^2 + beam^2)``, floored, where ``H`` is the larger
+point-to-plane Hessian sd of the two directions (inflated for correlated neighbours), ``d``
+the disagreement of the two directions and ``beam`` the term of a wide beam (zero unless the
+campaign's sensor names one). For every accepted pair of a stored run this refines
 the pair again from its stored branch-and-bound pose and stored ``refine_clouds`` (the same code
 as the ``refined_registrations`` asset) and compares, over the pairs whose refinement is used,
 the true error of the link with ``H``, ``d / 2`` and the final sigma: RMS values per axis, and
@@ -117,8 +118,8 @@ def main() -> None:
             "both ways from its stored branch-and-bound pose (the `refined_registrations` code); over the pairs "
             "whose refinement is used: the true error of the link, H (the larger point-to-plane Hessian sd of "
             "the two directions, inflated for correlated neighbours), d/2 (half the two directions' "
-            "disagreement) and the final sigma (`two_way_sd_scale` x sqrt((`sd_inflation` H)^2 + (d/2)^2), "
-            "floored).\n\n" + body + "\n"))
+            "disagreement) and the final sigma (`two_way_sd_scale` x sqrt(H^2 + (d/2)^2 + beam^2), floored; "
+            "beam: `two_way.beam_sd`, zero unless the campaign's sensor names a wide beam).\n\n" + body + "\n"))
 
 
 if __name__ == "__main__":

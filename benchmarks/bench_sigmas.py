@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import subprocess
 import sys
 import time
@@ -28,7 +29,11 @@ AXES = ("x", "y", "z", "heading")
 
 def kind_of(campaign: Path) -> str:
     text = (campaign / "campaign.yaml").read_text()
-    return "realistic" if "realistic" in text or "realistic" in campaign.name else "circular"
+    if "Sylva" in text or "sylva" in campaign.name:
+        return "Sylva"
+    kind = "realistic" if "realistic" in text or "realistic" in campaign.name else "circular"
+    beam = re.search(r"beam_divergence_mrad:\s*([0-9.]+)", text)
+    return kind if beam is None or float(beam[1]) > 0 else f"{kind}, no wide beam"
 
 
 def run(campaign: Path, out: Path, home: Path) -> float:

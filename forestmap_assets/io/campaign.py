@@ -31,7 +31,7 @@ _POSE_KEYS = {"x", "y", "z", "roll_deg", "pitch_deg", "heading_deg"}
 POINT_CLOUD_EXTENSIONS = (".las", ".laz", ".ply", ".pcd", ".xyz", ".txt", ".csv")
 _PAIR_KEYS = {"scan", "reference", "a_priori", "search"}
 _SEARCH_KEYS = {"xy_m", "z_m", "heading_deg"}
-_SENSOR_KEYS = {"angular_step_deg"}
+_SENSOR_KEYS = {"angular_step_deg", "beam_divergence_mrad", "beam_exit_mm"}
 
 
 class CampaignError(ValueError):
@@ -146,6 +146,12 @@ def _numbers(value: Any, n: int, where: str, field_name: str) -> tuple[float, ..
 def _positive(value: Any, where: str, field_name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
         raise _fail(where, f"{field_name}: expected a positive number, got {value!r}")
+    return float(value)
+
+
+def _non_negative(value: Any, where: str, field_name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+        raise _fail(where, f"{field_name}: expected a number >= 0, got {value!r}")
     return float(value)
 
 
@@ -328,6 +334,7 @@ def load_campaign(folder: str | Path) -> Campaign:
         search = {k: _positive(v, where, f"search.{k}") for k, v in search.items()}
 
     step: float | tuple[float, float] | None = None
+    beam: dict[str, float] = {}
     sensor = doc.get("sensor")
     if sensor is not None:
         if not isinstance(sensor, dict):
@@ -339,6 +346,11 @@ def load_campaign(folder: str | Path) -> Campaign:
             step = (_positive(a, where, "sensor.angular_step_deg[0]"), _positive(e, where, "sensor.angular_step_deg[1]"))
         elif raw_step is not None:
             step = _positive(raw_step, where, "sensor.angular_step_deg")
+        # the beam (footprint diameter exit + divergence x range) sets the refinement's sigma
+        for k, (name, unit) in {"beam_divergence_mrad": ("beam_divergence_mrad", 1.0),
+                                "beam_exit_mm": ("beam_exit_m", 1e-3)}.items():
+            if sensor.get(k) is not None:
+                beam[name] = unit * _non_negative(sensor[k], where, f"sensor.{k}")
 
     overrides = doc.get("params") or {}
     if not isinstance(overrides, dict):
@@ -348,6 +360,11 @@ def load_campaign(folder: str | Path) -> Campaign:
         for k, v in search.items():
             reg.setdefault(k, v)
         overrides = {**overrides, "registration": reg}
+    if beam:
+        ref = dict(overrides.get("refine") or {})
+        for k, v in beam.items():
+            ref.setdefault(k, v)
+        overrides = {**overrides, "refine": ref}
     try:
         params = resolve_params(environment, overrides)
     except ParamsError as exc:

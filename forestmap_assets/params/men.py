@@ -32,7 +32,9 @@ class RefineSettings:
     sd_floor_m: float = 0.004
     sd_floor_z_m: float = 0.002
     sd_floor_deg: float = 0.012
-    sd_inflation: float = 1.8  # the ICP-Hessian sigmas are multiplied by this before the floors
+    # the ICP-Hessian sigmas are multiplied by this before the floors (refine.py) and in the
+    # two-way agreement test (two_way.py)
+    sd_inflation: float = 1.8
     min_pairs: int = 200
     min_fit_gain: float = 0.0  # relative: the refined fit must be lower by this share
     # point-to-plane: the number of 4-DoF Gauss-Newton steps, and Open3D's 6-DoF ICP first
@@ -55,13 +57,33 @@ class RefineSettings:
     agree_sigmas: float = 3.0
     min_overlap_kept: float = 0.9
     two_way_model_voxel_m: float = 0.04  # the model voxel of the two-way refinement
+    # the scanner's beam (a campaign's sensor section sets these): footprint diameter
+    # beam_exit_m + beam_divergence_mrad * range, and the share of it a link's sigma takes
+    # (x, y, z, heading; two_way.beam_sd)
+    beam_exit_m: float = 0.0
+    beam_divergence_mrad: float = 0.0
+    beam_sd_share: tuple[float, float, float, float] = (0.09, 0.09, 0.035, 0.11)
+    # two-way pairs' normal: the sum of both points' normals (point_to_plane.plane_pairs); None:
+    # unless the beam diverges by more than symmetric_max_divergence_mrad (the silhouettes a wide
+    # first-return beam widens face their own sensor, and the sum pulled the scans apart: +2-3 mm
+    # along the baseline on the own simulator's 3 mrad beam; benchmarks/results.md "link_sigmas")
+    symmetric: bool | None = None
+    symmetric_max_divergence_mrad: float = 1.0
+
+    @property
+    def symmetric_pairs(self) -> bool:
+        """Whether the two-way refinement sums the pairs' normals (``symmetric``)."""
+        if self.symmetric is not None:
+            return bool(self.symmetric)
+        return self.beam_divergence_mrad <= self.symmetric_max_divergence_mrad
     max_data_points: int = 20000  # the data cloud of each scan is thinned to at most this many
-    # the two-way sigma (Hessian x sd_inflation, with half the two directions' disagreement) is
-    # scaled per axis (x, y, z, heading) and the heading floored: fitted on the final poses of
-    # 5 + 5 simulated half-resolution surveys with realistic and circular stems (benchmarks/
-    # results.md "sigmas"; error / sd RMS on realistic stems without: 1.16, 1.56, 1.12, 1.88)
-    two_way_sd_scale: tuple[float, float, float, float] = (1.5, 1.5, 1.3, 1.5)
-    two_way_sd_floor_deg: float = 0.02
+    # the two-way sigma: sqrt(H^2 + (d/2)^2 + beam^2) (H: the larger Hessian sd of the two
+    # directions, d: their disagreement, beam: two_way.beam_sd) scaled per axis (x, y, z,
+    # heading), then floored (m, m, m, deg). Fitted on the links of 3 Sylva surveys and 3 own
+    # surveys without a wide beam (scale), then on 8 own surveys with the 3 mrad first-return
+    # beam (beam_sd_share); benchmarks/results.md "link_sigmas", "sigmas"
+    two_way_sd_scale: tuple[float, float, float, float] = (0.8, 0.8, 0.96, 0.56)
+    two_way_sd_floor: tuple[float, float, float, float] = (0.001, 0.001, 0.0005, 0.003)
     max_fit_loss: float = 0.005  # relative: the refined fit may be this much worse (noise)
 
 

@@ -23,13 +23,18 @@ def test_pairs_search_params_and_sensor(tmp_path):
         "pairs:\n  - {scan: S, reference: T, a_priori: [3.0, -1.0, 1.0, -30.0]}\n"
         "search: {xy_m: 4.0, z_m: 1.0, heading_deg: 45}\n"
         "params:\n  cylinders: {min_length_m: 0.7}\n"
-        "sensor: {angular_step_deg: 0.108}\n"
+        "sensor: {angular_step_deg: 0.108, beam_divergence_mrad: 0.35, beam_exit_mm: 3.5}\n"
     )
     c = load_campaign(write_campaign(tmp_path / "p", extra=extra))
     assert c.pairs[0].scan == "S" and c.pairs[0].a_priori == (3.0, -1.0, 1.0, -30.0)
     assert c.params.cylinders.min_length_m == 0.7
     assert c.params.registration.xy_m == 4.0 and c.params.registration.heading_deg == 45.0
     assert c.angular_step_deg == 0.108
+    # the beam sets the refinement's (issue 19); an explicit params.refine value wins
+    assert c.params.refine.beam_divergence_mrad == 0.35 and c.params.refine.beam_exit_m == pytest.approx(0.0035)
+    c = load_campaign(write_campaign(tmp_path / "q", extra="sensor: {beam_divergence_mrad: 3}\n"
+                                     "params:\n  refine: {beam_divergence_mrad: 1.0}\n"))
+    assert c.params.refine.beam_divergence_mrad == 1.0 and c.params.refine.beam_exit_m == 0.0
 
 
 @pytest.mark.parametrize(
@@ -45,6 +50,7 @@ def test_pairs_search_params_and_sensor(tmp_path):
         ("params:\n  magic: {x: 1}\n", "params.magic: unknown stage"),
         ("search: {xy_m: -1}\n", "search.xy_m: expected a positive number"),
         ("sensor: {angular_step_deg: zero}\n", "sensor.angular_step_deg"),
+        ("sensor: {beam_divergence_mrad: -1}\n", "sensor.beam_divergence_mrad: expected a number >= 0"),
     ],
 )
 def test_manifest_errors_name_file_and_field(tmp_path, extra, expected):

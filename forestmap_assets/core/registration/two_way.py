@@ -21,10 +21,17 @@ own fit rather than because it stays within a box of the coarse sigma:
    radius) must not be worse than at the branch-and-bound pose by more than ``max_fit_loss``
    (relative; at the noise floor the two differ by a few hundredths of a millimetre).
 
-The pose used is the mean of the two directions; its sigma combines the Gauss-Newton Hessian
-(inflated for correlated neighbours, times ``sd_inflation``) with half the disagreement of the two
-directions, scaled per axis by ``two_way_sd_scale`` (fitted on simulated surveys with realistic
-stems, where bark relief and one-sided views bias both directions alike), then floors. Per-scan clouds (voxel-thinned data and model, model normals and k-d
+Each pair's normal is the normalised sum of the two points' normals (``symmetric``; the
+symmetric objective of Rusinkiewicz 2019, :func:`~.point_to_plane.plane_pairs`): with the model's
+normal alone, bark seen from one side pulled every scan toward the other, about 0.1 mm a metre
+of baseline on exact clouds and twice that at 2.5 cm range noise (issue 19). Not with a wide
+first-return beam (``symmetric_max_divergence_mrad``), whose widened silhouettes the sum follows.
+
+The pose used is the mean of the two directions. Its sigma is
+``two_way_sd_scale x sqrt(H^2 + (d / 2)^2 + beam^2)``, floored: ``H`` the larger Gauss-Newton
+Hessian sd of the two directions (inflated for correlated neighbours), ``d`` their disagreement,
+``beam`` what a wide first-return beam adds (:func:`beam_sd`; zero unless the campaign's sensor
+names its beam). Per-scan clouds (voxel-thinned data with normals, model with normals and k-d
 tree) are prepared once and shared by all pairs of the scan (:class:`RefineCloud`).
 """
 
@@ -41,7 +48,11 @@ from forestmap_assets.core.cloud import voxel_subsample, z_order
 from forestmap_assets.core.geometry import wrap_deg
 from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_matrix
 from forestmap_assets.core.registration.icp_uncertainty import icp_covariance, pose_sd
-from forestmap_assets.core.registration.point_to_plane import plane_residuals, point_to_plane_4dof
+from forestmap_assets.core.registration.point_to_plane import (
+    plane_pairs,
+    plane_residuals,
+    point_to_plane_4dof,
+)
 from forestmap_assets.params.men import RefineSettings
 
 
@@ -55,6 +66,7 @@ class RefineCloud:
     data: np.ndarray
     model: np.ndarray
     normals: np.ndarray
+    data_normals: np.ndarray | None = None  # of the data points (symmetric objective)
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -62,6 +74,12 @@ class RefineCloud:
         if self._tree is None:
             self._tree = cKDTree(self.model)
         return self._tree
+
+    def with_data_normals(self, k: int) -> RefineCloud:
+        """This cloud with :attr:`data_normals` (computed from the model if absent)."""
+        if self.data_normals is None:
+            self.data_normals = normals_at(self.data, self.model, self.tree, k)
+        return self
 
     @classmethod
     def from_points(cls, xyz: np.ndarray, s: RefineSettings) -> RefineCloud:
@@ -71,12 +89,14 @@ class RefineCloud:
         data = p[voxel_subsample(p, s.data_voxel_m)] if s.data_voxel_m and len(p) else p
         if s.max_data_points and len(data) > s.max_data_points:  # a fixed, seeded thinning
             data = data[np.sort(np.random.default_rng(0).choice(len(data), s.max_data_points, replace=False))]
-        return cls(data=data, model=model, normals=sensor_normals(model, s.normal_k))
+        cloud = cls(data=data, model=model, normals=sensor_normals(model, s.normal_k))
+        return cloud.with_data_normals(s.normal_k) if s.symmetric_pairs else cloud
 
     def to_table(self, colour: bool = False) -> pd.DataFrame:
-        """One row per point: ``x, y, z`` (and ``nx, ny, nz`` for the model), ``role`` ``data``
-        or ``model``; ``colour``: whether the scan has colour (the pair's method depends on it)."""
-        n = np.full((len(self.data), 3), np.nan)
+        """One row per point: ``x, y, z``, ``nx, ny, nz`` (NaN for data points without normals),
+        ``role`` ``data`` or ``model``; ``colour``: whether the scan has colour (the pair's
+        method depends on it)."""
+        n = np.full((len(self.data), 3), np.nan) if self.data_normals is None else self.data_normals
         xyz = np.vstack([self.data, self.model])
         normals = np.vstack([n, self.normals])
         return pd.DataFrame({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "nx": normals[:, 0],
@@ -87,7 +107,9 @@ class RefineCloud:
     def from_table(cls, table: pd.DataFrame) -> RefineCloud:
         model = table["role"].to_numpy() == "model"
         xyz = table[["x", "y", "z"]].to_numpy(np.float64)
-        return cls(data=xyz[~model], model=xyz[model], normals=table.loc[model, ["nx", "ny", "nz"]].to_numpy(np.float64))
+        normals = table[["nx", "ny", "nz"]].to_numpy(np.float64)
+        data_normals = normals[~model] if np.isfinite(normals[~model]).any() else None
+        return cls(data=xyz[~model], model=xyz[model], normals=normals[model], data_normals=data_normals)
 
 
 def _roles(n_data: int, n_model: int) -> pd.Series:
@@ -131,6 +153,21 @@ def sensor_normals(points: np.ndarray, k: int) -> np.ndarray:
     return n
 
 
+def normals_at(points: np.ndarray, model: np.ndarray, tree: cKDTree, k: int) -> np.ndarray:
+    """Unit normals at ``points`` from the plane of their ``k`` nearest ``model`` points (PCA,
+    spec 3.3), oriented toward the sensor at the origin; NaN with fewer than 3 neighbours."""
+    p = np.asarray(points, dtype=np.float64)
+    if len(p) == 0 or len(model) < 3:
+        return np.full((len(p), 3), np.nan)
+    _, idx = tree.query(p, k=min(int(k), len(model)), workers=-1)
+    nb = model[idx.reshape(len(p), -1)]
+    c = nb - nb.mean(axis=1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
+    n = vec[:, :, 0]  # eigenvector of the smallest eigenvalue
+    n[(n * p).sum(axis=1) > 0] *= -1.0  # toward the sensor
+    return n
+
+
 def invert_pose(pose) -> np.ndarray:
     """The 4-DoF pose of the reference in the scan's frame, from the scan's in the reference's."""
     r, t = pose4_to_matrix(pose)
@@ -153,6 +190,7 @@ class _Way:
     pairs_start: int
     pairs_end: int
     iterations: int
+    range_m: float  # median range of the paired data points from their own sensor
 
 
 def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineSettings) -> _Way | None:
@@ -160,12 +198,15 @@ def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineS
     pose = np.asarray(pose, dtype=np.float64)
     if len(data_cloud.data) == 0 or len(model_cloud.model) == 0:
         return None
-    data = data_cloud.data[_overlap(data_cloud.data, model_cloud.model, pose, s.overlap_margin_m)]
+    keep = _overlap(data_cloud.data, model_cloud.model, pose, s.overlap_margin_m)
+    data = data_cloud.data[keep]
     if len(data) < s.min_pairs:
         return None
+    dn = data_cloud.with_data_normals(s.normal_k).data_normals[keep] if s.symmetric_pairs else None
     r0, t0 = pose4_to_matrix(pose)
     fine = s.two_way_radii_m[-1]
-    start_res = plane_residuals(model_cloud.tree, model_cloud.normals, data @ r0.T + t0, fine)
+    start_res = plane_residuals(model_cloud.tree, model_cloud.normals, data @ r0.T + t0, fine,
+                                None if dn is None else dn @ r0.T)
     if len(start_res) < s.min_pairs:
         return None
     fit_start = float(np.abs(start_res).mean())
@@ -173,19 +214,36 @@ def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineS
     new, its = pose, 0
     for radius, steps in zip(s.two_way_radii_m, s.two_way_iterations, strict=True):  # coarse to fine
         new, _, k = point_to_plane_4dof(model_cloud.model, model_cloud.normals, data, new, max_distance_m=radius,
-                                        iterations=steps, tree=model_cloud.tree, box=box, tol=s.plane_tol)
+                                        iterations=steps, tree=model_cloud.tree, box=box, tol=s.plane_tol,
+                                        data_normals=dn)
         its += k
     new[3] = wrap_deg(new[3])
     r1, t1 = pose4_to_matrix(new)
     moved = data @ r1.T + t1
-    end_res = plane_residuals(model_cloud.tree, model_cloud.normals, moved, fine)
+    moved_n = None if dn is None else dn @ r1.T
+    end_res = plane_residuals(model_cloud.tree, model_cloud.normals, moved, fine, moved_n)
     fit_end = float(np.abs(end_res).mean()) if len(end_res) else np.nan
-    dist, idx = model_cloud.tree.query(moved, distance_upper_bound=fine)
-    ok = np.isfinite(dist)
-    cov = icp_covariance(moved[ok], model_cloud.model[idx[ok]], t1, normals=model_cloud.normals[idx[ok]], dof=4,
+    ok, idx, nv = plane_pairs(model_cloud.tree, model_cloud.normals, moved, fine, moved_n)
+    cov = icp_covariance(moved[ok], model_cloud.model[idx], t1, normals=nv, dof=4,
                          correlation_m=s.correlation_m)
+    rng = float(np.median(np.linalg.norm(data[ok], axis=1))) if ok.any() else np.nan
     return _Way(pose=new, sd=pose_sd(cov), fit_start=fit_start, fit_end=fit_end, pairs_start=len(start_res),
-                pairs_end=len(end_res), iterations=its)
+                pairs_end=len(end_res), iterations=its, range_m=rng)
+
+
+def beam_sd(ways: list[_Way], s: RefineSettings) -> np.ndarray:
+    """The sigma (x, y, z m, heading deg) a wide beam adds (inferred, issue 19): a footprint
+    that touches a nearer object returns its range, so each scan sees the stems' silhouettes
+    widened by up to a footprint, differently from each side, and the raw points carry a
+    view-dependent bias no residual shows. ``beam_sd_share`` of the footprint diameter
+    ``beam_exit_m + beam_divergence_mrad * r`` at the pairs' median range r (the heading: that
+    over r). Zero for a beam of no width (a campaign's ``sensor`` gives its beam)."""
+    r = float(np.nanmax([w.range_m for w in ways]))
+    foot = s.beam_exit_m + 1e-3 * s.beam_divergence_mrad * r
+    if not foot > 0 or not np.isfinite(r) or r <= 0:
+        return np.zeros(4)
+    c = np.asarray(s.beam_sd_share, dtype=np.float64)
+    return np.array([c[0] * foot, c[1] * foot, c[2] * foot, np.degrees(c[3] * foot / r)])
 
 
 def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings) -> dict:
@@ -205,16 +263,16 @@ def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings)
     poses = [fwd.pose] + ([invert_pose(back.pose)] if back else [])
     diff = np.r_[poses[0][:3] - poses[-1][:3], wrap_deg(poses[0][3] - poses[-1][3])]
     mean = np.r_[(poses[0][:3] + poses[-1][:3]) / 2, wrap_deg(poses[-1][3] + diff[3] / 2)]
-    hess = s.sd_inflation * np.nanmax([w.sd for w in ways], axis=0)
-    sd = np.asarray(s.two_way_sd_scale) * np.sqrt(np.nan_to_num(hess, nan=np.inf) ** 2 + (diff / 2) ** 2)
-    sd = np.maximum(sd, [s.sd_floor_m, s.sd_floor_m, s.sd_floor_z_m, s.two_way_sd_floor_deg])
+    hess = np.nan_to_num(np.nanmax([w.sd for w in ways], axis=0), nan=np.inf)
+    sd = np.asarray(s.two_way_sd_scale) * np.sqrt(hess**2 + (diff / 2) ** 2 + beam_sd(ways, s) ** 2)
+    sd = np.maximum(sd, s.two_way_sd_floor)
     fit_b = float(np.mean([w.fit_start for w in ways]))
     fit_r = float(np.mean([w.fit_end for w in ways]))
     pairs_b, pairs_r = sum(w.pairs_start for w in ways), sum(w.pairs_end for w in ways)
     out.update(pose=mean, sd=sd, fit_bnb_m=fit_b, fit_refined_m=fit_r, pairs_bnb=pairs_b, pairs_refined=pairs_r,
                iterations=sum(w.iterations for w in ways), disagree=diff)
     moved = np.abs(np.r_[mean[:3] - pose[:3], wrap_deg(mean[3] - pose[3])])
-    tol = np.maximum(np.r_[s.agree_m, s.agree_m, s.agree_m, s.agree_deg], s.agree_sigmas * hess)
+    tol = np.maximum(np.r_[s.agree_m, s.agree_m, s.agree_m, s.agree_deg], s.agree_sigmas * s.sd_inflation * hess)
     if np.any(moved[:3] >= s.max_shift_m * (1 - 1e-6)) or moved[3] >= s.max_turn_deg * (1 - 1e-6):
         out["reason"] = (f"refinement moved to the edge of its trust region ({100 * s.max_shift_m:g} cm, "
                          f"{s.max_turn_deg:g} deg): another surface pulled it")
