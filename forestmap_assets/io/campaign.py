@@ -347,10 +347,10 @@ def load_campaign(folder: str | Path) -> Campaign:
         elif raw_step is not None:
             step = _positive(raw_step, where, "sensor.angular_step_deg")
         # the beam (footprint diameter exit + divergence x range) sets the refinement's sigma
-        for k, (name, unit) in {"beam_divergence_mrad": ("beam_divergence_mrad", 1.0),
-                                "beam_exit_mm": ("beam_exit_m", 1e-3)}.items():
+        for k, (param, unit) in {"beam_divergence_mrad": ("beam_divergence_mrad", 1.0),
+                                 "beam_exit_mm": ("beam_exit_m", 1e-3)}.items():
             if sensor.get(k) is not None:
-                beam[name] = unit * _non_negative(sensor[k], where, f"sensor.{k}")
+                beam[param] = unit * _non_negative(sensor[k], where, f"sensor.{k}")
 
     overrides = doc.get("params") or {}
     if not isinstance(overrides, dict):

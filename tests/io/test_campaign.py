@@ -29,7 +29,7 @@ def test_pairs_search_params_and_sensor(tmp_path):
     assert c.pairs[0].scan == "S" and c.pairs[0].a_priori == (3.0, -1.0, 1.0, -30.0)
     assert c.params.cylinders.min_length_m == 0.7
     assert c.params.registration.xy_m == 4.0 and c.params.registration.heading_deg == 45.0
-    assert c.angular_step_deg == 0.108
+    assert c.angular_step_deg == 0.108 and c.name == "test-campaign"
     # the beam sets the refinement's (issue 19); an explicit params.refine value wins
     assert c.params.refine.beam_divergence_mrad == 0.35 and c.params.refine.beam_exit_m == pytest.approx(0.0035)
     c = load_campaign(write_campaign(tmp_path / "q", extra="sensor: {beam_divergence_mrad: 3}\n"

@@ -91,4 +91,5 @@ def test_simulated_campaign_names_its_beam(tmp_path):
     root = simulate_campaign(tmp_path / "wide", scans=1, seed=2, resolution="quarter", trees=5, plot_size=16)
     sensor = yaml.safe_load((root / "campaign.yaml").read_text())["sensor"]
     assert sensor["beam_divergence_mrad"] == pytest.approx(3.0) and sensor["beam_exit_mm"] == pytest.approx(42.0)
-    assert load_campaign(root).params.refine.beam_divergence_mrad == pytest.approx(3.0)
+    campaign = load_campaign(root)
+    assert campaign.params.refine.beam_divergence_mrad == pytest.approx(3.0) and campaign.name == "wide"
