@@ -228,7 +228,7 @@ def cmd_run(args) -> int:
 
         out = args.out or summary.campaign.root / "outputs"
         early.extend(write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
-                                   picture=not args.no_report, progress=progress, parts="map"))
+                                   picture=not args.no_report, progress=progress, map_only=True))
         _say(args, f"map written to {out}: {', '.join(p.name for p in early)}"
              + ("; where to scan next follows" if options["report"] else ""))
 
@@ -264,10 +264,14 @@ def cmd_run(args) -> int:
         print(f"outputs in {out} are up to date")
     else:
         timings = None if args.no_report else stage_timings_or_note(summary.campaign)
-        written = early if early and args.no_report else [
-            *early, *write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
-                                   picture=not args.no_report, report=not args.no_report,
-                                   progress=progress, timings=timings, parts="report" if early else "all")]
+        if not early:
+            written = write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
+                                    picture=not args.no_report, report=not args.no_report,
+                                    progress=progress, timings=timings)
+        else:  # the map's files are written: the report is what is left
+            from forestmap_assets.outputs.report import write_report
+
+            written = early if args.no_report else [*early, write_report(summary.campaign, out, timings=timings)]
         write_exports_stamp(out, key, written)
         print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
     if summary.check_failures:

@@ -74,27 +74,30 @@ def pca_normals(
     origin=(0.0, 0.0, 0.0),
     tree: cKDTree | None = None,
     max_distance_m: float = np.inf,
+    at: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (n, 3) and surface variation ``l0 / (l0 + l1 + l2)`` (n,) by PCA of each
-    point and its ``k`` nearest neighbours (spec 3.3; M = k, inferred 10-30).
+    point and its ``k`` nearest neighbours (spec 3.3; M = k, inferred 10-30); with ``at``, at
+    those points from their ``k`` nearest ``points``.
 
     The normal is the eigenvector of the smallest eigenvalue of the neighbourhood covariance,
     oriented toward the scanner ``origin`` (flipped where ``n . (o - p) < 0``, spec 3.3
     recommendation). Neighbours farther than ``max_distance_m`` are ignored; points with fewer
     than 3 neighbours get NaN normals.
     """
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    src = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    p = src if at is None else np.asarray(at, dtype=np.float64).reshape(-1, 3)
     n = len(p)
-    if n == 0:
-        return np.zeros((0, 3)), np.zeros(0)
-    kk = int(min(k + 1, n))
-    tree = tree or cKDTree(p)
+    if n == 0 or len(src) == 0:
+        return np.full((n, 3), np.nan), np.full(n, np.nan)
+    kk = int(min(k + 1 if at is None else k, len(src)))
+    tree = tree or cKDTree(src)
     dist, idx = tree.query(p, k=kk, distance_upper_bound=max_distance_m)
     dist = dist.reshape(n, kk)
     idx = idx.reshape(n, kk)
     ok = np.isfinite(dist)
     cnt = ok.sum(axis=1)
-    nb = p[np.where(ok, idx, 0)]  # (n, kk, 3)
+    nb = src[np.where(ok, idx, 0)]  # (n, kk, 3)
     w = ok[..., None].astype(np.float64)
     mean = (nb * w).sum(axis=1) / np.maximum(cnt, 1)[:, None]
     c = (nb - mean[:, None, :]) * w

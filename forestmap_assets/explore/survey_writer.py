@@ -96,9 +96,7 @@ class SurveyWriter:
         doc: dict = {
             "name": self.out.resolve().name,
             "environment": "forest",
-            "sensor": {"angular_step_deg": [round(float(sc.d_az), 9), round(float(sc.d_el), 9)],
-                       "beam_divergence_mrad": round(2e3 * sc.half_angle_rad if sc.sub_rays else 0.0, 6),
-                       "beam_exit_mm": round(2e3 * sc.exit_radius_m if sc.sub_rays else 0.0, 6)},
+            "sensor": {"angular_step_deg": [round(float(sc.d_az), 9), round(float(sc.d_el), 9)], **sc.sensor_beam()},
             "scans": [{"id": s, "path": f"scans/{s}.npz"} for s in self.ids],
         }
         if self.pairs:

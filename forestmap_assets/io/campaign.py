@@ -347,24 +347,19 @@ def load_campaign(folder: str | Path) -> Campaign:
         elif raw_step is not None:
             step = _positive(raw_step, where, "sensor.angular_step_deg")
         # the beam (footprint diameter exit + divergence x range) sets the refinement's sigma
-        for k, (param, unit) in {"beam_divergence_mrad": ("beam_divergence_mrad", 1.0),
-                                 "beam_exit_mm": ("beam_exit_m", 1e-3)}.items():
-            if sensor.get(k) is not None:
-                beam[param] = unit * _non_negative(sensor[k], where, f"sensor.{k}")
+        if sensor.get("beam_divergence_mrad") is not None:
+            beam["beam_divergence_mrad"] = _non_negative(sensor["beam_divergence_mrad"], where,
+                                                         "sensor.beam_divergence_mrad")
+        if sensor.get("beam_exit_mm") is not None:
+            beam["beam_exit_m"] = 1e-3 * _non_negative(sensor["beam_exit_mm"], where, "sensor.beam_exit_mm")
 
     overrides = doc.get("params") or {}
     if not isinstance(overrides, dict):
         raise _fail(where, "params: expected a mapping of stage -> {key: value}")
-    if search:
-        reg = dict(overrides.get("registration") or {})
-        for k, v in search.items():
-            reg.setdefault(k, v)
-        overrides = {**overrides, "registration": reg}
-    if beam:
-        ref = dict(overrides.get("refine") or {})
-        for k, v in beam.items():
-            ref.setdefault(k, v)
-        overrides = {**overrides, "refine": ref}
+    # the search box and the beam are defaults of their stages' sections; params win
+    for section, values in (("registration", search or {}), ("refine", beam)):
+        if values:
+            overrides = {**overrides, section: {**values, **(overrides.get(section) or {})}}
     try:
         params = resolve_params(environment, overrides)
     except ParamsError as exc:

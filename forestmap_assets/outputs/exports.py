@@ -167,12 +167,12 @@ def write_exports(
     report: bool = True,
     progress=None,
     timings: pd.DataFrame | None = None,
-    parts: str = "all",
+    map_only: bool = False,
 ) -> list[Path]:
     """Write every export that the stored assets allow; return the paths.
 
-    ``parts``: ``all``, ``map`` (all but report.html: the map's files, written before the
-    where-to-scan-next stages end, issue 16) or ``report`` (report.html alone).
+    ``map_only``: all but report.html (the map's files, written before the where-to-scan-next
+    stages end, issue 16; :func:`~forestmap_assets.outputs.report.write_report` follows).
 
     ``cloud_spacing_m``: voxel size of the point cloud exports (0 keeps every point, None
     writes no cloud). ``picture``: render ``map.png``; ``report``: write ``report.html``
@@ -247,14 +247,10 @@ def write_exports(
                 ),
             )
         )
-    if report:
+    if report and not map_only:
         from forestmap_assets.outputs.report import write_report
 
         steps.append(("report.html", lambda p: write_report(campaign, out, timings=timings, stored=stored)))
-    if parts not in ("all", "map", "report"):
-        raise ValueError(f"parts: expected all, map or report, got {parts!r}")
-    if parts != "all":
-        steps = [step for step in steps if (step[0] == "report.html") == (parts == "report")]
     with prog.bar(len(steps), "exports", unit="file") as bar:
         for name, write in steps:
             result = write(out / name)

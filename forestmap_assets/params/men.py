@@ -69,13 +69,6 @@ class RefineSettings:
     # along the baseline on the own simulator's 3 mrad beam; benchmarks/results.md "link_sigmas")
     symmetric: bool | None = None
     symmetric_max_divergence_mrad: float = 1.0
-
-    @property
-    def symmetric_pairs(self) -> bool:
-        """Whether the two-way refinement sums the pairs' normals (``symmetric``)."""
-        if self.symmetric is not None:
-            return bool(self.symmetric)
-        return self.beam_divergence_mrad <= self.symmetric_max_divergence_mrad
     max_data_points: int = 20000  # the data cloud of each scan is thinned to at most this many
     # the two-way sigma: sqrt(H^2 + (d/2)^2 + beam^2) (H: the larger Hessian sd of the two
     # directions, d: their disagreement, beam: two_way.beam_sd) scaled per axis (x, y, z,
@@ -85,6 +78,13 @@ class RefineSettings:
     two_way_sd_scale: tuple[float, float, float, float] = (0.8, 0.8, 0.96, 0.56)
     two_way_sd_floor: tuple[float, float, float, float] = (0.001, 0.001, 0.0005, 0.003)
     max_fit_loss: float = 0.005  # relative: the refined fit may be this much worse (noise)
+
+    @property
+    def symmetric_pairs(self) -> bool:
+        """Whether the two-way refinement sums the pairs' normals (``symmetric``)."""
+        if self.symmetric is not None:
+            return bool(self.symmetric)
+        return self.beam_divergence_mrad <= self.symmetric_max_divergence_mrad
 
 
 Combine = Literal["spacing", "variance", "either", "both"]

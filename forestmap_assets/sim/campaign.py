@@ -389,10 +389,7 @@ def simulate_campaign(
     doc: dict = {
         "name": out.resolve().name,
         "environment": environment,
-        "sensor": {"angular_step_deg": [_r(scanner.d_az, 9), _r(scanner.d_el, 9)],
-                   # the first-return wide beam (none without sub-rays): the refinement's sigma
-                   "beam_divergence_mrad": _r(2e3 * scanner.half_angle_rad if scanner.sub_rays else 0.0, 6),
-                   "beam_exit_mm": _r(2e3 * scanner.exit_radius_m if scanner.sub_rays else 0.0, 6)},
+        "sensor": {"angular_step_deg": [_r(scanner.d_az, 9), _r(scanner.d_el, 9)], **scanner.sensor_beam()},
         "scans": entries,
     }
     if not no_prior:

@@ -177,6 +177,13 @@ class VirtualScanner:
         """Beam footprint radius at range r: (0.042 + 0.003 r) / 2 (spec 1.1)."""
         return self.exit_radius_m + self.half_angle_rad * np.asarray(r)
 
+    def sensor_beam(self) -> dict[str, float]:
+        """The beam as ``campaign.yaml`` names it (``sensor``): divergence (mrad) and exit
+        diameter (mm) of the first-return footprint; none without sub-rays (one exact ray)."""
+        wide = self.sub_rays > 0
+        return {"beam_divergence_mrad": round(2e3 * self.half_angle_rad if wide else 0.0, 6),
+                "beam_exit_mm": round(2e3 * self.exit_radius_m if wide else 0.0, 6)}
+
     def _directions(self, jitter=None) -> np.ndarray:
         """Unit beam directions, scanner frame, (rows*cols, 3) float32, built in row blocks so
         that a fine grid needs no float64 copy of the whole image; cached without ``jitter``

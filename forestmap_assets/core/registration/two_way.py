@@ -44,7 +44,7 @@ import pandas as pd
 import pyarrow as pa
 from scipy.spatial import cKDTree
 
-from forestmap_assets.core.cloud import voxel_subsample, z_order
+from forestmap_assets.core.cloud import pca_normals, voxel_subsample, z_order
 from forestmap_assets.core.geometry import wrap_deg
 from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_matrix
 from forestmap_assets.core.registration.icp_uncertainty import icp_covariance, pose_sd
@@ -78,7 +78,7 @@ class RefineCloud:
     def with_data_normals(self, k: int) -> RefineCloud:
         """This cloud with :attr:`data_normals` (computed from the model if absent)."""
         if self.data_normals is None:
-            self.data_normals = normals_at(self.data, self.model, self.tree, k)
+            self.data_normals = pca_normals(self.model, k, tree=self.tree, at=self.data)[0]
         return self
 
     @classmethod
@@ -150,21 +150,6 @@ def sensor_normals(points: np.ndarray, k: int) -> np.ndarray:
     n[order] = np.asarray(pc.normals)
     flip = (n * p).sum(axis=1) > 0  # n . (0 - p) < 0: facing away from the sensor
     n[flip] *= -1.0
-    return n
-
-
-def normals_at(points: np.ndarray, model: np.ndarray, tree: cKDTree, k: int) -> np.ndarray:
-    """Unit normals at ``points`` from the plane of their ``k`` nearest ``model`` points (PCA,
-    spec 3.3), oriented toward the sensor at the origin; NaN with fewer than 3 neighbours."""
-    p = np.asarray(points, dtype=np.float64)
-    if len(p) == 0 or len(model) < 3:
-        return np.full((len(p), 3), np.nan)
-    _, idx = tree.query(p, k=min(int(k), len(model)), workers=-1)
-    nb = model[idx.reshape(len(p), -1)]
-    c = nb - nb.mean(axis=1, keepdims=True)
-    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", c, c))
-    n = vec[:, :, 0]  # eigenvector of the smallest eigenvalue
-    n[(n * p).sum(axis=1) > 0] *= -1.0  # toward the sensor
     return n
 
 
