@@ -229,8 +229,16 @@ def peer_simulate(out: Path, seed: int, scans: int) -> None:
                 offsets.append(float(np.hypot(*(world[m, :2].mean(axis=0) - axis[:2]))))
         check.append(float(np.median(offsets)) if offsets else math.nan)
         print(f"{name}: {len(cloud)} points, stem check {check[-1]:.3f} m", flush=True)
+    # the stems' truth (world frame): axis at 1.3 m above the base, base height, DBH there, and
+    # from how many scans Sylva counts the stem as visible (its own recall denominator)
+    seen = [np.asarray(v) for v in survey.visible]
+    seen = [np.flatnonzero(v) if v.dtype == bool else v for v in seen]
+    trees = [[*np.asarray(t.axis_point(1.3), dtype=float).reshape(-1)[:2].tolist(), float(t.base_z),
+              2.0 * float(t.radius_at(1.3)), int(sum(j in set(v.tolist()) for v in seen))]
+             for j, t in enumerate(survey.plot.trees)]
     truth = {
         "sylva_rs": version("sylva-rs"), "seed": seed, "names": names, "n_points": npts,
+        "trees_x_y_base_z_dbh_visible": trees,
         "true_transforms": [np.asarray(T, dtype=float).tolist() for T in survey.true_transforms],
         "plot_size_m": float(survey.plot.size), "n_trees": len(survey.plot.trees),
         "simulate_s": sim_s, "stem_check_m": check,
@@ -316,6 +324,12 @@ def write_sylva_campaign(root: Path, truth: dict) -> None:
         rows.append(f"{name},{m[0, 3]:.6f},{m[1, 3]:.6f},{m[2, 3]:.6f},{h:.6f}")
     (root / "truth").mkdir(exist_ok=True)
     (root / "truth" / "poses.csv").write_text("\n".join(rows) + "\n")
+    if truth.get("trees_x_y_base_z_dbh_visible"):  # the stems in the first scan's frame
+        rows = ["tree_id,x,y,z,dbh_m,n_visible_scans"]
+        for k, (x, y, z, dbh, seen) in enumerate(truth["trees_x_y_base_z_dbh_visible"], start=1):
+            p = inv0 @ np.array([x, y, z, 1.0])
+            rows.append(f"{k},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f},{dbh:.6f},{seen}")
+        (root / "truth" / "trees.csv").write_text("\n".join(rows) + "\n")
     scans = "\n".join(f"  - {{id: {n}, path: scans/{n}.ply}}" for n in truth["names"])
     (root / "campaign.yaml").write_text(
         f"# Sylva (sylva-rs {truth['sylva_rs']}) simulate_survey(n_scans={len(T)}, "
@@ -501,7 +515,29 @@ def run_forestmap(case: dict, rundir: Path) -> dict:
     regs = pd.read_csv(out / "registrations.csv", dtype={"scan": str, "reference": str})
     res["registrations"] = regs["status"].value_counts().to_dict()
     res["refinement"] = refinement_outcome(case, home, m["lines"])
+    res["trees"] = tree_scores(Path(case["root"]), out)
     return res
+
+
+def tree_scores(root: Path, out: Path) -> dict | None:
+    """forestmap's tree list against the simulator's stems (``truth/trees.csv``, match within
+    0.5 m, ``sim.evaluate``): stems visible from >= 2 scans and how many were found, matched
+    trees with a DBH, DBH RMSE and bias (cm)."""
+    truth = root / "truth" / "trees.csv"
+    if not truth.exists() or not (out / "trees.csv").exists():
+        return None
+    import pandas as pd
+
+    from forestmap_assets.sim.evaluate import match_trees
+
+    m = match_trees(pd.read_csv(out / "trees.csv"), pd.read_csv(truth), 0.5)
+    seen = m[m["n_visible_scans"] >= 2]
+    dbh = m[m["est_dbh_m"].notna()]
+    err = 100.0 * (dbh["est_dbh_m"] - dbh["dbh_m"]).to_numpy(float)
+    return {"stems": len(m), "visible_2": len(seen), "found_2": int(seen["est_x"].notna().sum()),
+            "with_dbh": len(dbh), "dbh_rmse_cm": float((err**2).mean() ** 0.5) if err.size else None,
+            "dbh_bias_cm": float(err.mean()) if err.size else None,
+            "dbh_max_cm": float(abs(err).max()) if err.size else None}
 
 
 def refinement_outcome(case: dict, home: Path, lines) -> list[dict]:
@@ -658,6 +694,18 @@ def report(cases: list[dict], meta: dict) -> str:
         sa = (f"{a[0]}/{n}", _f(a[1] and a[1] * 100), _f(a[2] and a[2] * 100), _f(a[3], "{:.2f}")) if a else ("-",) * 4
         L.append(f"| {case_name(c)} | {sa[0]} | {b[0]}/{n} | {sa[1]} | {_f(b[1] and b[1] * 100)} | "
                  f"{sa[2]} | {_f(b[2] and b[2] * 100)} | {sa[3]} | {_f(b[3], '{:.2f}')} |")
+    scored = [c for c in cases if c["forestmap"].get("trees")]
+    if scored:
+        L += ["", "**Trees** (forestmap's `trees.csv` against the simulator's stems, matched within "
+              "0.5 m; found = stems the simulator counts as visible from >= 2 scans that have a "
+              "tree; DBH over every matched tree with one; Sylva's `coregister` makes no tree list):",
+              "", "| survey | stems | visible from >= 2 scans | found | trees with DBH | "
+              "DBH RMSE cm | DBH bias cm | largest DBH error cm |", "|---|---|---|---|---|---|---|---|"]
+        for c in scored:
+            t = c["forestmap"]["trees"]
+            L.append(f"| {case_name(c)} | {t['stems']} | {t['visible_2']} | {t['found_2']} | "
+                     f"{t['with_dbh']} | {_f(t['dbh_rmse_cm'], '{:.2f}')} | "
+                     f"{_f(t['dbh_bias_cm'], '{:+.2f}')} | {_f(t['dbh_max_cm'])} |")
     L += ["", "Per scan (x = not placed):", "",
           "| survey | scan | distance from reference m | xy cm Sylva | xy cm forestmap | z cm Sylva | "
           "z cm forestmap | heading deg Sylva | heading deg forestmap |",
@@ -772,6 +820,8 @@ def backfill(case: dict, rundir: Path) -> dict:
     truth = Path(case["root"]) / "truth" / "poses.csv"
     if "pair_errors" not in case and truth.exists():
         case["pair_errors"] = pair_diagnostics(f.get("refinement", []), truth)
+    if "trees" not in f:
+        f["trees"] = tree_scores(Path(case["root"]), rundir / "fm-out")
     log = rundir / "sylva.log"
     if case.get("sylva") and "phases" not in case["sylva"] and log.exists():
         lines = []
