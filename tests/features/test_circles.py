@@ -229,3 +229,40 @@ def test_empty_segments_give_empty_table():
         cm = fit_circle_models(img, segment_scan_lines(img).iloc[:0], CircleParams(),
                                SegmentationParams())
     assert len(cm) == 0 and dict(cm.dtypes.astype(str)) == CIRCLE_COLUMNS
+
+
+def test_neighbour_pairs_runs_equal_the_listing():
+    """The overlapping segments found by binary search per row equal those of listing every
+    segment of the rows within reach, in the same order; overlapping rows take the listing."""
+    from forestmap_assets.core.features.circle_models import (
+        _neighbour_pairs,
+        _neighbour_pairs_listed,
+        _SegData,
+    )
+
+    rng = np.random.default_rng(3)
+    rows, chains, cols = [], [], []
+    for chain in range(40):
+        for row in range(rng.integers(0, 20), rng.integers(25, 60)):
+            edges = np.sort(rng.choice(400, size=2 * rng.integers(1, 12), replace=False))
+            for a, b in edges.reshape(-1, 2):  # disjoint intervals in a row
+                rows.append(row)
+                chains.append(chain)
+                cols.append((a, b))
+    order = rng.permutation(len(rows))
+    c = np.array(cols)[order]
+    sd = _SegData(row=np.array(rows)[order], chain=np.array(chains)[order], col0=c[:, 0], col1=c[:, 1],
+                  r_mid=np.ones(len(rows)), width=np.ones(len(rows)), pptr=np.zeros(len(rows) + 1, np.int64),
+                  pts=np.zeros((0, 3)), el_step=0.01)
+    k = rng.integers(-1, 15, len(rows))
+    key = sd.chain * (int(sd.row.max()) + 2) + sd.row
+    fast = _neighbour_pairs(sd, k)
+    listed = _neighbour_pairs_listed(sd, k, key)
+    assert fast[0].size > 1000
+    assert np.array_equal(fast[0], listed[0]) and np.array_equal(fast[1], listed[1])
+    # a segment inside another of its row (ends no longer ascending): the listing answers
+    sd.col0[0], sd.col1[0] = 0, 30
+    sd.col0[1], sd.col1[1], sd.row[1], sd.chain[1] = 5, 20, sd.row[0], sd.chain[0]
+    key = sd.chain * (int(sd.row.max()) + 2) + sd.row
+    assert all(np.array_equal(a, b) for a, b in zip(_neighbour_pairs(sd, k), _neighbour_pairs_listed(sd, k, key),
+                                                    strict=True))
