@@ -36,7 +36,7 @@ CODE_VERSIONS: dict[str, str] = {
     "refine_clouds": "2",
     "candidate_pairs": "2",
     "pairwise_registrations": "3",
-    "refined_registrations": "4",
+    "refined_registrations": "5",
     "retry_pairs": "1",
     "optimal_map": "3",
     "residual_checks": "1",

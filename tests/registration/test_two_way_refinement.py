@@ -93,3 +93,27 @@ def test_simulated_campaign_names_its_beam(tmp_path):
     assert sensor["beam_divergence_mrad"] == pytest.approx(3.0) and sensor["beam_exit_mm"] == pytest.approx(42.0)
     campaign = load_campaign(root)
     assert campaign.params.refine.beam_divergence_mrad == pytest.approx(3.0) and campaign.name == "wide"
+
+
+def test_objective_spread_is_the_model_normal_pose_along_the_baseline(exact_scans):
+    """The symmetric refinement's sigma along the baseline takes the model-normal objective's
+    difference there (two_way.objective_spread): on exact scans that is the about 1 mm the
+    model's normal shortens a baseline; the pose handed in is left as it was."""
+    from forestmap_assets.core.registration.two_way import objective_spread
+
+    points, truth = exact_scans
+    s = dataclasses.replace(RefineSettings(), symmetric=True)
+    clouds = {sid: RefineCloud.from_points(p, s) for sid, p in points.items()}
+    a, b = list(points)[1], list(points)[0]
+    pose = np.asarray(relative_pose(truth.loc[a, ["x", "y", "z", "heading_deg"]].to_numpy(float),
+                                    truth.loc[b, ["x", "y", "z", "heading_deg"]].to_numpy(float)))
+    kept = pose.copy()
+    spread = objective_spread(clouds[a], clouds[b], pose, s)
+    assert np.array_equal(pose, kept)
+    u = np.abs(pose[:2]) / np.hypot(*pose[:2])
+    along = float(np.hypot(*spread))
+    assert 0.0002 < along < 0.004, spread
+    assert np.allclose(spread, along * u)
+    sd_on = two_way_refine(clouds[a], clouds[b], pose, s)["sd"]
+    sd_off = two_way_refine(clouds[a], clouds[b], pose, dataclasses.replace(s, objective_sd=False))["sd"]
+    assert np.all(sd_on[:2] >= sd_off[:2]) and np.array_equal(sd_on[2:], sd_off[2:])
