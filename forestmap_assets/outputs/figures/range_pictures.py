@@ -7,7 +7,6 @@ caption says what the axes and colours are; notebooks draw the full figures
 from __future__ import annotations
 
 import io
-import warnings
 
 import numpy as np
 
@@ -20,8 +19,11 @@ MASK_RGB, MASK_ALPHA = (230, 13, 13), 0.85
 OUTLINE_RGB = (255, 140, 0)
 
 
-def _block_reduce(a: np.ndarray, f: int, how) -> np.ndarray:
-    """``a`` (rows, cols) reduced over ``f`` x ``f`` blocks (edges padded with the fill value)."""
+def _block_reduce(a: np.ndarray, f: int, how: np.ufunc) -> np.ndarray:
+    """``a`` (rows, cols) reduced over ``f`` x ``f`` blocks by the ufunc ``how`` (``np.fmin``:
+    the least, NaN only where the whole block is; ``np.logical_or``: any), edges padded with
+    the fill value; ``f - 1`` element-wise passes per axis over strided rows, then columns
+    (``np.nanmin`` over both axes of the blocks took half of a picture's time)."""
     if f == 1:
         return a
     rows, cols = a.shape
@@ -29,8 +31,13 @@ def _block_reduce(a: np.ndarray, f: int, how) -> np.ndarray:
     fill = np.nan if a.dtype.kind == "f" else False
     if pr or pc:
         a = np.pad(a, ((0, pr), (0, pc)), constant_values=fill)
-    blocks = a.reshape(a.shape[0] // f, f, a.shape[1] // f, f)
-    return how(blocks, axis=(1, 3))
+    rows = a[0::f]
+    for k in range(1, f):
+        rows = how(rows, a[k::f])
+    out = rows[:, 0::f]
+    for k in range(1, f):
+        out = how(out, rows[:, k::f])
+    return out
 
 
 def range_mask_picture(
@@ -53,15 +60,13 @@ def range_mask_picture(
     f = max(1, -(-cols // max_width))
     lo, hi = range_limits(image)
     rng = np.where(image.valid, image.range_m, np.nan).astype(np.float32)
-    with warnings.catch_warnings():  # an all-empty block is no return
-        warnings.simplefilter("ignore", RuntimeWarning)
-        near = _block_reduce(rng, f, np.nanmin)
+    near = _block_reduce(rng, f, np.fmin)  # an all-empty block is no return (NaN)
     grey = np.clip((near - lo) / max(hi - lo, 1e-9), 0.0, 1.0) * 255.0
     rgb = np.repeat(np.nan_to_num(grey, nan=0.0)[..., None], 3, axis=2)
     rgb[np.isnan(near)] = NO_RETURN_RGB
     caption = title
     if mask is not None and mask.any():
-        m = _block_reduce(np.asarray(mask, bool), f, np.any)
+        m = _block_reduce(np.asarray(mask, bool), f, np.logical_or)
         rgb[m] = (1 - MASK_ALPHA) * rgb[m] + MASK_ALPHA * np.asarray(MASK_RGB, float)
         caption = f"{caption} (red: {label}, {int(np.count_nonzero(mask))} pixels)"
     picture = Image.fromarray(rgb.astype(np.uint8), "RGB")
@@ -75,7 +80,7 @@ def range_mask_picture(
             draw.line(list(zip(x.tolist(), y.tolist(), strict=True)), fill=OUTLINE_RGB, width=1)
         caption = f"{caption} (orange: {len(outlines)} {outline_label})"
     buf = io.BytesIO()
-    picture.save(buf, format="PNG", compress_level=3)
+    picture.save(buf, format="PNG", compress_level=1)
     caption += (
         f"; columns: azimuth {a0:.0f} to {a1:.0f} deg, rows: elevation {e1:.0f} (top) to"
         f" {e0:.0f} deg; grey: range {lo:g}-{hi:g} m (near = dark), pale blue: no return"
