@@ -35,10 +35,22 @@ _EVENT_LOG = (
 )
 
 
+# no capture of each step's stdout and stderr into files: Dagster's local manager starts two
+# ``tail -F`` and two orphan watchers (Python) for every step, and a step's exit waits for the
+# tails, which hung a Dask worker for good (CI rehearsal of ef6b978); forestmap reports through
+# the event log, and its steps print nothing
+_COMPUTE_LOGS = (
+    "compute_logs:\n"
+    "  module: dagster._core.storage.noop_compute_log_manager\n"
+    "  class: NoOpComputeLogManager\n"
+)
+
+
 def home_config(home: Path) -> str:
     """The ``dagster.yaml`` of a forestmap home (the event log's folder is written out: every
     process, whatever its ``$DAGSTER_HOME``, must open the same one)."""
-    return _OLD_CONFIG + _EVENT_LOG + json.dumps(str(home.resolve() / "history" / "runs")) + "\n"
+    return (_OLD_CONFIG + _EVENT_LOG + json.dumps(str(home.resolve() / "history" / "runs")) + "\n"
+            + _COMPUTE_LOGS)
 
 
 def _outdated(text: str, home: Path) -> bool:

@@ -95,6 +95,18 @@ def test_earlier_home_configuration_is_upgraded_custom_kept(tmp_path):
         assert isinstance(get_instance().event_log_storage, PooledSqliteEventLogStorage)
     assert (old / "dagster.yaml").read_text() == home_config(old)
 
+    # the configuration before steps' stdout and stderr stopped being captured (tail -F per step)
+    from dagster._core.storage.noop_compute_log_manager import NoOpComputeLogManager
+
+    from forestmap_assets.orchestration.instance import _COMPUTE_LOGS
+
+    before = tmp_path / "before"
+    before.mkdir()
+    (before / "dagster.yaml").write_text(home_config(before).replace(_COMPUTE_LOGS, ""))
+    with environ(DAGSTER_HOME=str(before)):
+        assert isinstance(get_instance().compute_log_manager, NoOpComputeLogManager)
+    assert (before / "dagster.yaml").read_text() == home_config(before)
+
     moved = tmp_path / "moved"
     old.rename(moved)
     with environ(DAGSTER_HOME=str(moved)):
