@@ -234,11 +234,8 @@ def test_empty_segments_give_empty_table():
 def test_neighbour_pairs_runs_equal_the_listing():
     """The overlapping segments found by binary search per row equal those of listing every
     segment of the rows within reach, in the same order; overlapping rows take the listing."""
-    from forestmap_assets.core.features.circle_models import (
-        _neighbour_pairs,
-        _neighbour_pairs_listed,
-        _SegData,
-    )
+    from forestmap_assets.core.features.circle_models import _SegData
+    from forestmap_assets.core.features.segment_neighbours import neighbour_pairs, neighbour_pairs_listed
 
     rng = np.random.default_rng(3)
     rows, chains, cols = [], [], []
@@ -256,13 +253,13 @@ def test_neighbour_pairs_runs_equal_the_listing():
                   pts=np.zeros((0, 3)), el_step=0.01)
     k = rng.integers(-1, 15, len(rows))
     key = sd.chain * (int(sd.row.max()) + 2) + sd.row
-    fast = _neighbour_pairs(sd, k)
-    listed = _neighbour_pairs_listed(sd, k, key)
+    fast = neighbour_pairs(sd, k)
+    listed = neighbour_pairs_listed(sd, k, key)
     assert fast[0].size > 1000
     assert np.array_equal(fast[0], listed[0]) and np.array_equal(fast[1], listed[1])
     # a segment inside another of its row (ends no longer ascending): the listing answers
     sd.col0[0], sd.col1[0] = 0, 30
     sd.col0[1], sd.col1[1], sd.row[1], sd.chain[1] = 5, 20, sd.row[0], sd.chain[0]
     key = sd.chain * (int(sd.row.max()) + 2) + sd.row
-    assert all(np.array_equal(a, b) for a, b in zip(_neighbour_pairs(sd, k), _neighbour_pairs_listed(sd, k, key),
+    assert all(np.array_equal(a, b) for a, b in zip(neighbour_pairs(sd, k), neighbour_pairs_listed(sd, k, key),
                                                     strict=True))

@@ -37,6 +37,7 @@ tree) are prepared once and shared by all pairs of the scan (:class:`RefineCloud
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -241,8 +242,6 @@ def objective_spread(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSetting
     over 14 links), and their difference along the baseline, which neither direction's
     agreement sees, becomes a sigma along it: ``|d . u| (|u_x|, |u_y|)`` with ``u`` the unit
     baseline (``benchmarks/results.md``, "render")."""
-    import dataclasses
-
     u = np.array(pose[:2], dtype=np.float64)  # a copy: pose stays
     length = float(np.hypot(*u))
     if length <= 0:
