@@ -235,7 +235,10 @@ def test_neighbour_pairs_runs_equal_the_listing():
     """The overlapping segments found by binary search per row equal those of listing every
     segment of the rows within reach, in the same order; overlapping rows take the listing."""
     from forestmap_assets.core.features.circle_models import _SegData
-    from forestmap_assets.core.features.segment_neighbours import neighbour_pairs, neighbour_pairs_listed
+    from forestmap_assets.core.features.segment_neighbours import (
+        neighbour_pairs,
+        neighbour_pairs_listed,
+    )
 
     rng = np.random.default_rng(3)
     rows, chains, cols = [], [], []
