@@ -41,3 +41,9 @@ echo "setup: installing the latest pip into .venv"
 echo "setup: installing forestmap (editable, with its dev extra) into .venv"
 .venv/bin/python -m pip install -q -e ".[dev]"
 echo "forestmap installed in $(pwd)/.venv"
+# the numba kernels, compiled once into their disk cache so that no run pays for it (issue 16);
+# skipped while the cache is current; a failure here only means the first run compiles them
+if ! .venv/bin/python -m forestmap_assets.warm_kernels --check >/dev/null; then
+  echo "setup: compiling forestmap's kernels into their cache (once, about 3 min on 2 cores)"
+  .venv/bin/python -m forestmap_assets.warm_kernels || true
+fi

@@ -1,0 +1,100 @@
+"""Compile forestmap's numba kernels into their on-disk cache once, at install (issue 16).
+
+Every kernel is ``@njit(cache=True)``: a process loads it from ``__pycache__`` instead of
+compiling it, but only once some process has compiled it on this machine. Without this step
+that is the user's first ``forestmap run``, which then takes several minutes longer (about 150 s
+of compiling on a 2-core machine: the branch-and-bound search alone 90 s). ``scripts/setup.sh``
+runs this module after installing: it simulates a small campaign (three quarter-resolution
+scans of realistic stems, no prior; two unorganised PLY clouds without a sensor step, which take
+the projection path with its step estimate, and one organised npz range image) in a temporary
+folder and runs the whole pipeline on it with a temporary home, so every stage's kernels are
+compiled with the argument types a real run gives them. Nothing outside the temporary folder is
+written but the kernel cache and a stamp beside it: the fingerprint of the kernels' sources, so
+that the next set-up skips this step until a kernel changes.
+
+    python -m forestmap_assets.warm_kernels [--force | --check]   # about 2-3 min on 2 cores, once
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+SCANS = ("T", "S", "R")
+ORGANISED = "R"  # this scan stays an npz range image; the others are unorganised PLY
+
+
+def _forestmap(args: list[str], env: dict[str, str]) -> None:
+    cmd = [sys.executable, "-m", "forestmap_assets.cli", "--quiet", *args]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        why = (done.stderr.strip().splitlines() or ["no message"])[-1]
+        raise RuntimeError(f"forestmap {args[0]} exited {done.returncode}: {why}")
+
+
+def warm_campaign(root: Path, env: dict[str, str]) -> Path:
+    """A 3-scan campaign in ``root/campaign``: PLY scans without a sensor step, one npz scan."""
+    common = ["--scans", str(len(SCANS)), "--trees", "30", "--plot-size", "30", "--seed", "7",
+              "--resolution", "quarter", "--no-prior", "--stems", "realistic"]
+    camp, npz = root / "campaign", root / "npz"
+    _forestmap(["simulate", str(camp), *common, "--format", "ply"], env)
+    _forestmap(["simulate", str(npz), *common, "--format", "npz"], env)
+    (camp / "scans" / f"{ORGANISED}.ply").unlink()
+    (npz / "scans" / f"{ORGANISED}.npz").rename(camp / "scans" / f"{ORGANISED}.npz")
+    doc = {"name": "warm-kernels", "environment": "forest",
+           "scans": [{"id": s, "path": f"scans/{s}.{'npz' if s == ORGANISED else 'ply'}"}
+                     for s in SCANS]}
+    (camp / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return camp
+
+
+def fingerprint() -> str:
+    """The kernels' sources, numba's version and the cache folder, hashed."""
+    import numba
+
+    h = hashlib.sha256(f"{numba.__version__} {sys.version} {os.environ.get('NUMBA_CACHE_DIR', '')}".encode())
+    for path in sorted(Path(__file__).parent.rglob("*.py")):
+        text = path.read_bytes()
+        if b"njit" in text:
+            h.update(path.relative_to(Path(__file__).parent).as_posix().encode() + text)
+    return h.hexdigest()
+
+
+def stamp_file() -> Path:
+    return Path(__file__).parent / "__pycache__" / "warm_kernels.stamp"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    stamp, mark = stamp_file(), fingerprint()
+    current = stamp.exists() and stamp.read_text() == mark
+    if "--check" in args:  # exit 0 when the cache is current, 1 when it is not
+        return 0 if current else 1
+    if current and "--force" not in args:
+        print("warm_kernels: the kernel cache is up to date")
+        return 0
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="forestmap-warm-") as tmp:
+        root = Path(tmp)
+        env = {**os.environ, "FORESTMAP_HOME": str(root / "home")}
+        try:
+            camp = warm_campaign(root, env)
+            _forestmap(["run", str(camp)], env)
+        except RuntimeError as exc:
+            print(f"warm_kernels: {exc}; the first run will compile what is missing", file=sys.stderr)
+            return 1
+    stamp.parent.mkdir(exist_ok=True)
+    stamp.write_text(mark)
+    print(f"warm_kernels: kernels compiled and cached in {time.perf_counter() - started:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
