@@ -399,14 +399,16 @@ if HAVE_NUMBA:
 
 if HAVE_NUMBA:
 
-    @njit(cache=True)
+    @njit(cache=True, parallel=True)
     def _nb_axes(c, chain, radius, q, lo, hi, sv, span, tan_max, n):  # pragma: no cover
-        """Concatenation sums of :func:`estimate_axes` (same filters as the numpy engine)."""
+        """Concatenation sums of :func:`estimate_axes` (same filters as the numpy engine).
+        Queries in parallel: ``q`` holds distinct circles and each writes only its own row, in
+        the same order on any number of threads."""
         sa = np.zeros((n, 3))
         sb = np.zeros((n, 3))
         na = np.zeros(n)
         nb = np.zeros(n)
-        for k in range(q.size):
+        for k in prange(q.size):
             a = q[k]
             for j in range(lo[k], hi[k]):
                 b = sv[j]
