@@ -209,8 +209,34 @@ def _start_workers_early(args) -> None:
     forkserver.start()
 
 
+def _quick_options(args) -> tuple:
+    return (None if args.no_cloud else args.cloud_spacing, not args.no_report)
+
+
+def _nothing_to_do(args, started: float) -> bool:
+    """A campaign settled by its last run, nothing changed since, outputs in place: say so and
+    stop before Dagster is imported (:mod:`forestmap_assets.io.quick_settled`)."""
+    from forestmap_assets.io.home import dagster_home, forestmap_home
+    from forestmap_assets.io.quick_settled import nothing_to_do
+
+    root = Path(args.campaign)
+    out = Path(args.out) if args.out else root / "outputs"
+    doc = nothing_to_do(root, out, _quick_options(args))
+    if doc is None:
+        return False
+    n = len(doc.get("scans") or [])
+    _say(args, f"{doc.get('name', root.name)}: {n} scans, 0 to process, {n} up to date")
+    print(f"outputs in {out} are up to date")
+    store = os.environ.get("FORESTMAP_STORE") or str(forestmap_home() / "store")
+    _say(args, f"asset store: {store}; run history: {dagster_home()} (forestmap ui)")
+    _say(args, f"done in {time.perf_counter() - started:.1f} s (nothing changed since the last run)")
+    return True
+
+
 def cmd_run(args) -> int:
     started = time.perf_counter()
+    if args.executor != "dask" and _nothing_to_do(args, started):
+        return 0
     _start_workers_early(args)
     from forestmap_assets.orchestration.runner import run_campaign
     from forestmap_assets.outputs.progress import Progress, use
@@ -281,7 +307,12 @@ def cmd_run(args) -> int:
     _say(args, f"asset store: {default_store_url()}; run history: {os.environ.get('DAGSTER_HOME')} (forestmap ui)")
     now = time.perf_counter()
     _say(args, f"done in {now - started:.1f} s (stages {summary.seconds:.1f} s, exports {now - ran:.1f} s)")
-    return _left_out(summary)
+    code = _left_out(summary)
+    if code == 0 and summary.settled and not summary.check_failures:
+        from forestmap_assets.io.quick_settled import record_settled
+
+        record_settled(Path(args.campaign), Path(out), _quick_options(args))
+    return code
 
 
 def _warm_exports() -> None:

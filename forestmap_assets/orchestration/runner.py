@@ -181,6 +181,7 @@ def _run(
         if settle and is_settled(instance, campaign, settled_key(instance, campaign, defs, store_url)):
             n = len(campaign.scan_ids)
             progress(f"{campaign.name}: {n} scans, 0 to process, {n} up to date" + campaign.prior_note)
+            summary.settled = True
             summary.seconds = time.perf_counter() - start
             return summary
         session.start_workers()  # likely work to do: the workers start while the states are read
@@ -292,6 +293,7 @@ def _run(
                     v == "fresh" for k, v in states.items() if k[0] in granularity
                 ):
                     mark_settled(instance, campaign, settled_key(instance, campaign, defs, store_url))
+                    summary.settled = True
                 break
             stages = [s for s in level_stages if s in level]
             for s in stages:

@@ -65,6 +65,7 @@ class RunSummary:
     not_built: list[str] = field(default_factory=list)
     seconds: float = 0.0
     kept_earlier: set[str] = field(default_factory=set)  # failed scans whose older results stand
+    settled: bool = False  # the session ended with every stage fresh (recorded as settled)
 
     @property
     def left_out(self) -> dict[str, str]:
