@@ -94,7 +94,7 @@ def feature_assets(campaign: Campaign) -> list:
         image = _image(range_images)
         cp = params.circles
         options = ("fit", "symmetry_statistic", "stable_centre_m", "stable_radius_m", "stable_normal_deg",
-                   "stable_share", "max_batch_points", "engine")
+                   "stable_share", "stable_gain", "max_batch_points", "engine")
         table = fit_circle_models(image, segments, cp, params.segmentation, **{k: getattr(cp, k) for k in options})
         meta: dict = {"circles": len(table)}
         if len(table):

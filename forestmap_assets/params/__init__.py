@@ -84,6 +84,9 @@ class CircleParams(_Stage):
     stable_radius_m: float = 0.001
     stable_normal_deg: float = 0.5
     stable_share: float = 0.8
+    # (inferred) also stop when the share of settled circles rose by less than this in the last
+    # iteration: on rough stems the rest move at their noise level and never settle (issue 16)
+    stable_gain: float = 0.15
     engine: Literal["auto", "numpy", "numba"] = "auto"
     max_batch_points: int = 2_000_000
 
