@@ -208,7 +208,7 @@ class RegistrationParams(_Stage):
     # (screen_keep + 1) * N pairs); False or screen_keep 0: every pair (off in the structured
     # presets, whose sub-maps are walls and pillar rows)
     screening: bool = True
-    screen_keep: int = 4
+    screen_keep: int = 3
     # a pair whose screening matched at least this many stems is searched in a box of
     # screen_box (xy m, heading deg) around the screening motion (accurate to about 1 cm and
     # 0.1 deg on Sylva's surveys), then in the no-prior box if that fails (0: always no-prior)
