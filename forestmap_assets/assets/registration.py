@@ -8,6 +8,8 @@ and ``retry_pairs`` (partners for the scans left unplaced).
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pandas as pd
 from dagster import (
@@ -40,6 +42,14 @@ from forestmap_assets.assets.pairs import (
 )
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.progress import report
+
+
+def _prepared_cloud(table: pd.DataFrame):
+    """(whether the scan has colour, its RefineCloud) from its stored ``refine_clouds`` table
+    (an empty table does not veto colour)."""
+    from forestmap_assets.core.registration.two_way import RefineCloud
+
+    return (bool(table["colour"].iloc[0]) if len(table) else True), RefineCloud.from_table(table)
 
 
 def refine_settings(campaign: Campaign):
@@ -245,14 +255,17 @@ def registration_assets(campaign: Campaign) -> list:
         clouds, prepared = {}, {}
         if (regs["status"] == "accepted").any():
             from forestmap_assets.core.registration.refine import resolved_method
-            from forestmap_assets.core.registration.two_way import RefineCloud
 
             ids = scans_of(campaign, context.partition_key)
-            tables = {sid: t for sid in ids if (t := read_stored(io, campaign, "refine_clouds", sid)) is not None}
-            colour = len(tables) == 2 and all(bool(t["colour"].iloc[0]) for t in tables.values() if len(t))
-            if len(tables) == 2 and settings.guard == "fit" and resolved_method(settings, colour) == "point_to_plane":
-                prepared = {sid: RefineCloud.from_table(t) for sid, t in tables.items()}
-                clouds = {sid: (None, None) for sid in tables}  # the prepared clouds are enough
+            got = {}  # per scan: (colour, RefineCloud), kept by this worker for the scan's next pairs
+            for sid in ids:
+                with contextlib.suppress(FileNotFoundError):
+                    got[sid] = io.derived_from_stored(list(asset_key(campaign, "refine_clouds").path), sid,
+                                                      _prepared_cloud)
+            colour = len(got) == 2 and all(c for c, _ in got.values())
+            if len(got) == 2 and settings.guard == "fit" and resolved_method(settings, colour) == "point_to_plane":
+                prepared = {sid: cloud for sid, (_, cloud) in got.items()}
+                clouds = {sid: (None, None) for sid in got}  # the prepared clouds are enough
             else:  # HICP on colour, or the box guard: the raw points
                 for sid in ids:
                     table = read_stored(io, campaign, "range_images", sid)

@@ -14,6 +14,8 @@ import json
 import os
 import time
 import uuid
+from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -125,8 +127,17 @@ def _recalled(path: UPath) -> pa.Table | None:
 
 
 def forget_recent() -> None:
-    """Drop the remembered table (the end of a run in a long-lived worker process)."""
+    """Drop the remembered table and derived objects (the end of a run in a long-lived worker
+    process)."""
     _RECENT.clear()
+    _DERIVED.clear()
+
+
+# Objects built from a stored table (a scan's refinement cloud with its k-d tree), per worker
+# process, while the file is unchanged: every pair of a scan needs the same one (issue 16:
+# reading and preparing two clouds took about half of a pair's refinement step).
+_DERIVED: OrderedDict = OrderedDict()
+DERIVED_MAX = 6
 
 
 def _remove_tree(path: UPath) -> None:
@@ -320,6 +331,23 @@ class ParquetIOManager(UPathIOManager):
         if partition is not None:
             path = path / partition
         return self.load_from_path(None, path)
+
+    def derived_from_stored(self, asset_path: list[str], partition: str, build: Callable[[Any], Any]) -> Any:
+        """``build(stored output)`` of one partition of another asset, remembered in this
+        process (the last :data:`DERIVED_MAX`) while the stored file is unchanged (local stores;
+        elsewhere built each time). Raises ``FileNotFoundError`` when it was never materialised."""
+        path = self._base_path.joinpath(*asset_path) / partition
+        ident = _identity(self._table_path(path))
+        key = (ident, getattr(build, "__qualname__", repr(build)))
+        if ident is not None and key in _DERIVED:
+            _DERIVED.move_to_end(key)
+            return _DERIVED[key]
+        value = build(self.load_from_path(None, path))
+        if ident is not None:
+            _DERIVED[key] = value
+            while len(_DERIVED) > DERIVED_MAX:
+                _DERIVED.popitem(last=False)
+        return value
 
     def remove_stored(self, asset_path: list[str], partition: str) -> None:
         """Delete one stored partition (a pair no longer searched, issue 17)."""

@@ -4,10 +4,12 @@ table over while the file is unchanged, and the image decoded from it is shared 
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 from upath import UPath
 
 from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.io import store
 from forestmap_assets.io.store import ParquetIOManager, forget_recent
 
 
@@ -43,3 +45,26 @@ def test_range_image_read_once_per_file_version(tmp_path):
     other = RangeImage.from_table(again)
     assert other is not image
     assert np.array_equal(other.range_m, _image(2).range_m, equal_nan=True)
+
+
+def test_derived_objects_are_built_once_while_the_file_is_unchanged(tmp_path):
+    """A pair step's prepared scan cloud (issue 16): built once per worker and stored file."""
+    io = ParquetIOManager(base_path=UPath(tmp_path))
+    store.write_table_atomic(pd.DataFrame({"a": [1.0, 2.0]}), tmp_path / "c" / "refine_clouds" / "s1.parquet")
+    calls = []
+
+    def build(table):
+        calls.append(1)
+        return float(table["a"].sum())
+
+    assert io.derived_from_stored(["c", "refine_clouds"], "s1", build) == 3.0
+    assert io.derived_from_stored(["c", "refine_clouds"], "s1", build) == 3.0
+    assert len(calls) == 1
+    store.write_table_atomic(pd.DataFrame({"a": [5.0]}), tmp_path / "c" / "refine_clouds" / "s1.parquet")
+    assert io.derived_from_stored(["c", "refine_clouds"], "s1", build) == 5.0  # a new file: built again
+    assert len(calls) == 2
+    forget_recent()
+    assert io.derived_from_stored(["c", "refine_clouds"], "s1", build) == 5.0
+    assert len(calls) == 3
+    with pytest.raises(FileNotFoundError):
+        io.derived_from_stored(["c", "refine_clouds"], "s9", build)
