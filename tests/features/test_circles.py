@@ -109,6 +109,30 @@ def test_axis_estimate_by_concatenation():
     assert tilt.max() <= 30.0 + 1e-9
 
 
+@pytest.mark.skipif(not HAVE_NUMBA, reason="numba engine not installed")
+def test_axis_engines_agree_on_stems_and_a_wide_ground_chain():
+    """The numba engine's cell search (circles binned by chain and span-wide cells) gives the
+    numpy engine's concatenation sums: leaning stems, a 40 m ground chain, invalid circles."""
+    rng = np.random.default_rng(5)
+    stems = []
+    for k in range(6):
+        t = np.linspace(0, 3, 300)[:, None]
+        d = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.4, 0.4), 1.0])
+        stems.append(rng.uniform(-15, 15, 3) * [1, 1, 0] + t * d / np.linalg.norm(d) + rng.normal(0, 0.01, (300, 3)))
+    ground = np.c_[rng.uniform(-20, 20, (3000, 2)), rng.normal(0, 0.15, 3000)]
+    c = np.vstack([*stems, ground])
+    chain = np.repeat(np.arange(7) * 11 + 3, [300] * 6 + [3000])
+    valid = rng.random(c.shape[0]) < 0.7
+    c[rng.random(c.shape[0]) < 0.01] = np.nan
+    n0 = np.tile([0.0, 0.0, 1.0], (c.shape[0], 1))
+    radius = rng.uniform(0.03, 0.3, c.shape[0])
+    a = estimate_axes(c, valid, n0, radius, chain, 0.6, 30.0, engine="numpy")
+    b = estimate_axes(c, valid, n0, radius, chain, 0.6, 30.0, engine="numba")
+    np.testing.assert_array_equal(a[1], b[1])
+    assert a[1].sum() > 2000  # the stems and a good part of the ground have an estimate
+    np.testing.assert_allclose(a[0], b[0], atol=1e-12)
+
+
 def _stem_image(lean_deg=0.0, radius=0.15, dist=8.0, noise=0.025, seed=0, el=(-5, 20),
                 az=(-6, 16)):
     stem = Cylinder.stem(dist, 0.0, radius, lean_deg=lean_deg, lean_azimuth_deg=90.0)

@@ -400,35 +400,56 @@ if HAVE_NUMBA:
 if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True)
-    def _nb_axes(c, chain, radius, q, lo, hi, sv, span, tan_max, n):  # pragma: no cover
+    def _nb_axes(c, radius, q, qcell, vkey, vz, sv, n_x, n_y, span, tan_max, n):  # pragma: no cover
         """Concatenation sums of :func:`estimate_axes` (same filters as the numpy engine).
-        Queries in parallel: ``q`` holds distinct circles and each writes only its own row, in
-        the same order on any number of threads."""
+
+        The valid circles ``sv`` are sorted by (chain, x cell, y cell) key ``vkey``, then by z
+        ``vz``; cells are ``span`` wide, so the circles within ``span`` of a query lie in its
+        own and the 8 neighbouring cells of its chain, each a run found by binary search, and
+        within a run a z interval. (One window per chain and z range was quadratic in a chain's
+        size: a rendered scan's ground chain of 17,600 circles made 98 % of the work.) Queries
+        in parallel: ``q`` holds distinct circles and each writes only its own row."""
         sa = np.zeros((n, 3))
         sb = np.zeros((n, 3))
         na = np.zeros(n)
         nb = np.zeros(n)
         for k in prange(q.size):
             a = q[k]
-            for j in range(lo[k], hi[k]):
-                b = sv[j]
-                if b == a or chain[b] != chain[a]:
+            ch, cx, cy = qcell[k, 0], qcell[k, 1], qcell[k, 2]
+            for ox in range(-1, 2):
+                x = cx + ox
+                if x < 0 or x >= n_x:
                     continue
-                dx, dy, dz = c[b, 0] - c[a, 0], c[b, 1] - c[a, 1], c[b, 2] - c[a, 2]
-                if dz == 0 or np.sqrt(dx * dx + dy * dy + dz * dz) > span:
-                    continue
-                if np.sqrt(dx * dx + dy * dy) > abs(dz) * tan_max + radius[a]:
-                    continue
-                if dz > 0:
-                    sa[a, 0] += dx
-                    sa[a, 1] += dy
-                    sa[a, 2] += dz
-                    na[a] += 1
-                else:
-                    sb[a, 0] -= dx
-                    sb[a, 1] -= dy
-                    sb[a, 2] -= dz
-                    nb[a] += 1
+                for oy in range(-1, 2):
+                    y = cy + oy
+                    if y < 0 or y >= n_y:
+                        continue
+                    key = (ch * n_x + x) * n_y + y
+                    r0 = np.searchsorted(vkey, key, side="left")
+                    r1 = np.searchsorted(vkey, key, side="right")
+                    if r0 == r1:
+                        continue
+                    j0 = r0 + np.searchsorted(vz[r0:r1], c[a, 2] - span, side="left")
+                    j1 = r0 + np.searchsorted(vz[r0:r1], c[a, 2] + span, side="right")
+                    for j in range(j0, j1):
+                        b = sv[j]
+                        if b == a:
+                            continue
+                        dx, dy, dz = c[b, 0] - c[a, 0], c[b, 1] - c[a, 1], c[b, 2] - c[a, 2]
+                        if dz == 0 or np.sqrt(dx * dx + dy * dy + dz * dz) > span:
+                            continue
+                        if np.sqrt(dx * dx + dy * dy) > abs(dz) * tan_max + radius[a]:
+                            continue
+                        if dz > 0:
+                            sa[a, 0] += dx
+                            sa[a, 1] += dy
+                            sa[a, 2] += dz
+                            na[a] += 1
+                        else:
+                            sb[a, 0] -= dx
+                            sb[a, 1] -= dy
+                            sb[a, 2] -= dz
+                            nb[a] += 1
         return sa, sb, na, nb
 
 

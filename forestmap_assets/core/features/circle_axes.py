@@ -37,20 +37,18 @@ def estimate_axes(
     vidx = np.flatnonzero(valid & fin)
     if vidx.size == 0:
         return new, has
-    big = 1e5
-    vkey = chain[vidx] * big + centres[vidx, 2]
-    order = np.argsort(vkey, kind="stable")
-    sv, skey = vidx[order], vkey[order]
     q = np.flatnonzero(fin)
-    qkey = chain[q] * big + centres[q, 2]
-    lo = np.searchsorted(skey, qkey - span_m, "left")
-    hi = np.searchsorted(skey, qkey + span_m, "right")
     tan_max = float(np.tan(np.radians(max_tilt_deg)))
     if engine == "numba":
-        sa, sb, na, nb = _nb_axes(
-            np.ascontiguousarray(centres), chain, radius, q, lo, hi, sv, float(span_m), tan_max, n
-        )
+        sa, sb, na, nb = _axes_by_cells(centres, chain, radius, vidx, q, float(span_m), tan_max)
     else:
+        big = 1e5
+        vkey = chain[vidx] * big + centres[vidx, 2]
+        order = np.argsort(vkey, kind="stable")
+        sv, skey = vidx[order], vkey[order]
+        qkey = chain[q] * big + centres[q, 2]
+        lo = np.searchsorted(skey, qkey - span_m, "left")
+        hi = np.searchsorted(skey, qkey + span_m, "right")
         cnt = hi - lo
         a = np.repeat(q, cnt)
         first = np.concatenate([[0], np.cumsum(cnt)[:-1]])
@@ -77,6 +75,22 @@ def estimate_axes(
     has = (na + nb > 0) & (norm > 0)
     new[has] = m[has] / norm[has, None]
     return clamp_tilt(new, max_tilt_deg), has
+
+
+def _axes_by_cells(centres, chain, radius, vidx, q, span_m: float, tan_max: float):
+    """The numba engine's sums: valid circles binned by chain and ``span_m`` cells in x and y
+    (see :func:`_nb_axes`)."""
+    cells = np.floor(centres[:, :2] / span_m)
+    lo = cells[q].min(axis=0)
+    cells = np.where(np.isfinite(cells), cells - lo, 0).astype(np.int64)
+    n_x, n_y = (int(v) + 1 for v in cells[q].max(axis=0))
+    ch = np.unique(chain, return_inverse=True)[1].astype(np.int64)
+    key = (ch * n_x + cells[:, 0]) * n_y + cells[:, 1]
+    order = np.lexsort((centres[vidx, 2], key[vidx]))
+    sv = vidx[order]
+    qcell = np.ascontiguousarray(np.stack([ch[q], cells[q, 0], cells[q, 1]], 1))
+    return _nb_axes(np.ascontiguousarray(centres), radius, q, qcell, key[sv], np.ascontiguousarray(centres[sv, 2]),
+                    sv, n_x, n_y, span_m, tan_max, centres.shape[0])
 
 
 def clamp_tilt(n: np.ndarray, max_tilt_deg: float) -> np.ndarray:
