@@ -214,6 +214,10 @@ class RegistrationParams(_Stage):
     # 0.1 deg on Sylva's surveys), then in the no-prior box if that fails (0: always no-prior)
     screen_centre_min: int = 4
     screen_box: tuple[float, float] = (1.0, 10.0)
+    # (inferred, issue 16) a screened pair's z: the ground grids' dz at the screening motion,
+    # +- this half-width (or 3 of its sd if larger), instead of +-z_m around 0: vertical stems
+    # leave z loosely bound, and a quarter of the z range took a third less search; None: off
+    screen_ground_hz_m: float | None = 0.3
 
 
 class MappingParams(_Stage):

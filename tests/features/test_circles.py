@@ -115,7 +115,7 @@ def test_axis_engines_agree_on_stems_and_a_wide_ground_chain():
     numpy engine's concatenation sums: leaning stems, a 40 m ground chain, invalid circles."""
     rng = np.random.default_rng(5)
     stems = []
-    for k in range(6):
+    for _ in range(6):
         t = np.linspace(0, 3, 300)[:, None]
         d = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.4, 0.4), 1.0])
         stems.append(rng.uniform(-15, 15, 3) * [1, 1, 0] + t * d / np.linalg.norm(d) + rng.normal(0, 0.01, (300, 3)))

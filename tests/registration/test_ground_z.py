@@ -46,3 +46,27 @@ def test_ground_dz_fails_cleanly_without_overlap():
     far = ground_dz(g, g, (200.0, 0.0, 0.0, 0.0), p.cell_m)
     assert not far.ok and far.n_cells == 0
     assert not ground_dz(pd.DataFrame(columns=["ix", "iy", "z"]), g, (0, 0, 0, 0), p.cell_m).ok
+
+
+def test_screened_box_is_centred_on_the_ground_dz():
+    """A screened pair's z range (issue 16, pair_registrations.ground_z_box): the ground's dz at
+    the screening motion +- screen_ground_hz_m, from a screening motion 0.5 m and 2 deg off."""
+    from forestmap_assets.core.registration.pair_registrations import ground_z_box
+    from forestmap_assets.params import RegistrationParams
+
+    rng = np.random.default_rng(5)
+    world = _ground_points(rng)
+    pose_s = (4.0, -2.0, 0.37, 35.0)
+    c, s = np.cos(np.radians(35)), np.sin(np.radians(35))
+    s_local = (world - np.array(pose_s[:3])) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    p = ElevationParams()
+    grids = {"S": elevation_grid(s_local, p), "T": elevation_grid(world, p)}
+    reg = RegistrationParams()
+    centre, half = (4.5, -2.0, 0.0, 37.0), (1.0, 1.0, 1.25, 10.0)
+    c2, h2 = ground_z_box(centre, half, reg, grids, "S", "T", p.cell_m)
+    assert abs(c2[2] - pose_s[2]) < 0.05 and h2[2] == reg.screen_ground_hz_m
+    assert (c2[0], c2[1], c2[3]) == (centre[0], centre[1], centre[3]) and h2[:2] + h2[3:] == (1.0, 1.0, 10.0)
+    # no grids, or the option off: the box as it was
+    assert ground_z_box(centre, half, reg, {}, "S", "T", p.cell_m) == (centre, half)
+    off = reg.model_copy(update={"screen_ground_hz_m": None})
+    assert ground_z_box(centre, half, off, grids, "S", "T", p.cell_m) == (centre, half)

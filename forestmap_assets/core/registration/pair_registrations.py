@@ -209,6 +209,24 @@ def _register_one(args):
     return result
 
 
+def ground_z_box(centre, half, params: RegistrationParams, elevation, scan: str, reference: str,
+                 cell_m: float) -> tuple[tuple, tuple]:
+    """A screened pair's box with z centred on the ground grids' dz at the screening motion and
+    half-width ``params.screen_ground_hz_m`` (or 3 of its sd), inside the original z range;
+    the box unchanged without grids, without a ground estimate, or with the option off
+    (inferred, issue 16; a pair that fails is searched again in the no-prior box)."""
+    hz = params.screen_ground_hz_m
+    if hz is None or not elevation or elevation.get(scan) is None or elevation.get(reference) is None:
+        return centre, half
+    from forestmap_assets.core.registration.ground_z import ground_dz
+
+    g = ground_dz(elevation[scan], elevation[reference], (centre[0], centre[1], 0.0, centre[3]), cell_m)
+    if not g.ok or abs(g.dz - centre[2]) > half[2]:
+        return centre, half
+    new_hz = min(half[2], max(hz, 3 * g.sd))
+    return (centre[0], centre[1], g.dz, centre[3]), (half[0], half[1], new_hz, half[3])
+
+
 def register_candidates(
     candidates: pd.DataFrame,
     submaps: dict[str, pd.DataFrame],
@@ -241,8 +259,10 @@ def register_candidates(
         scan = submaps.get(c.scan)
         ref = submaps.get(c.reference)
         pts = lambda df: np.zeros((0, 3)) if df is None or df.empty else df[["x", "y", "z"]].to_numpy(float)  # noqa: E731
-        jobs.append((pts(scan), pts(ref), (c.cx, c.cy, c.cz, c.cheading_deg), (c.hx, c.hy, c.hz, c.hheading_deg), params,
-                     float(getattr(c, "box_heading_deg", 0.0) or 0.0)))
+        centre, half = (c.cx, c.cy, c.cz, c.cheading_deg), (c.hx, c.hy, c.hz, c.hheading_deg)
+        if getattr(c, "source", "") == "screened":
+            centre, half = ground_z_box(centre, half, params, elevation, c.scan, c.reference, elevation_cell_m)
+        jobs.append((pts(scan), pts(ref), centre, half, params, float(getattr(c, "box_heading_deg", 0.0) or 0.0)))
     # one pair after another: the kernels already use every core (numba threads), and parallel
     # work across pairs belongs to the orchestration (partitions), never a pool inside an asset
     results = []
