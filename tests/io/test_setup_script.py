@@ -177,6 +177,7 @@ def test_everything_present_as_a_user_without_sudo_does_not_try_apt(repo_copy, b
         "python3 -m venv .venv",
         "python -m pip install -q --upgrade pip",
         'python -m pip install -q -e .[dev]',
+        "python -m forestmap_assets.warm_kernels --check",  # the (fake) kernel cache is current
     ]
     # one line per thing installed: the venv, pip, forestmap; then where it went
     assert res.stdout.splitlines() == [
