@@ -216,7 +216,7 @@ def _quick_options(args) -> tuple:
 def _nothing_to_do(args, started: float) -> bool:
     """A campaign settled by its last run, nothing changed since, outputs in place: say so and
     stop before Dagster is imported (:mod:`forestmap_assets.io.quick_settled`)."""
-    from forestmap_assets.io.home import dagster_home, forestmap_home
+    from forestmap_assets.io.home import dagster_home, default_store_url
     from forestmap_assets.io.quick_settled import nothing_to_do
 
     root = Path(args.campaign)
@@ -227,8 +227,7 @@ def _nothing_to_do(args, started: float) -> bool:
     n = len(doc.get("scans") or [])
     _say(args, f"{doc.get('name', root.name)}: {n} scans, 0 to process, {n} up to date")
     print(f"outputs in {out} are up to date")
-    store = os.environ.get("FORESTMAP_STORE") or str(forestmap_home() / "store")
-    _say(args, f"asset store: {store}; run history: {dagster_home()} (forestmap ui)")
+    _say(args, f"asset store: {default_store_url()}; run history: {dagster_home()} (forestmap ui)")
     _say(args, f"done in {time.perf_counter() - started:.1f} s (nothing changed since the last run)")
     return True
 

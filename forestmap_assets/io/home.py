@@ -32,6 +32,11 @@ def settled_file(dagster_folder: Path | str, key: str) -> Path:
     return Path(dagster_folder) / "settled" / f"{key}.txt"
 
 
+def default_store_url() -> str:
+    """``$FORESTMAP_STORE`` (any fsspec URL) or ``<home>/store``."""
+    return os.environ.get("FORESTMAP_STORE") or str(forestmap_home() / "store")
+
+
 def forestmap_home() -> Path:
     """The project's home folder: ``$FORESTMAP_HOME`` or ``~/.forestmap``."""
     return Path(os.environ.get("FORESTMAP_HOME", DEFAULT_HOME)).expanduser()

@@ -3,11 +3,12 @@ building the definitions and opening the instance take about 3 s on their own).
 
 When a ``forestmap run`` ends with every stage fresh (the session recorded the campaign as
 settled) and its outputs current, the command line records a *quick key* beside the settled
-record: a hash of what the run's result depends on, read with ``stat`` alone: ``campaign.yaml``
+record: a hash of what the run's result depends on, read without Dagster: ``campaign.yaml``
 (its bytes), each scan file's size and modification time, the package's sources, the Dagster
-instance's history (newest event, dynamic partitions, runs), the outputs folder's files, the store and home variables and the
-run's export options. The next run computes the same key before importing anything heavy;
-equal means that nothing the full check reads has changed since, and the run stops there.
+instance's history (newest event, dynamic partitions, runs, read from its SQLite files), the
+outputs folder's files, the store and home variables and the run's export options. The next
+run computes the same key before importing anything heavy; equal means that nothing the full
+check reads has changed since, and the run stops there.
 Anything else (a touched scan, an edited parameter, a materialisation from the UI, a deleted
 output, another forestmap version) changes the key and the run takes the full path.
 """
@@ -21,7 +22,9 @@ from pathlib import Path
 from forestmap_assets.io.home import campaign_key, dagster_home
 
 PACKAGE = Path(__file__).resolve().parents[1]
-ENV = ("FORESTMAP_HOME", "FORESTMAP_STORE")  # and the Dagster folder they give (the run sets $DAGSTER_HOME)
+# the home and store variables; the Dagster folder enters as the path they give (a run sets
+# $DAGSTER_HOME itself, so its value differs between the end of a run and the next start)
+ENV = ("FORESTMAP_HOME", "FORESTMAP_STORE")
 
 
 def _stats(folder: Path, pattern: str = "*") -> list[tuple[str, int, int]]:
@@ -67,7 +70,7 @@ def quick_key(root: Path, out: Path, options: tuple) -> tuple[str, str, dict] | 
         doc = yaml.safe_load(text)
         scans = doc.get("scans") or []
         paths = [str(s["path"]) for s in scans]
-        files = [(p, (root / p).stat().st_size, (root / p).stat().st_mtime_ns) for p in paths]
+        files = [(p, st.st_size, st.st_mtime_ns) for p in paths for st in [(root / p).stat()]]
         home = dagster_home()
         history = _history(home)
     except Exception:
@@ -103,9 +106,8 @@ def record_settled(root: Path, out: Path, options: tuple) -> None:
     got = quick_key(root, out, options)
     if got is None:
         return
+    from forestmap_assets.io.writers import atomic_write
+
     key, value, _ = got
-    path = quick_file(key)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(value)
-    os.replace(tmp, path)
+    with atomic_write(quick_file(key)) as tmp:
+        tmp.write_text(value)

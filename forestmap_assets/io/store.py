@@ -25,12 +25,7 @@ import pyarrow.parquet as pq
 from dagster import ConfigurableIOManagerFactory, InputContext, OutputContext, UPathIOManager
 from upath import UPath
 
-from forestmap_assets.io.home import forestmap_home
-
-
-def default_store_url() -> str:
-    """``$FORESTMAP_STORE`` (any fsspec URL) or ``<home>/store``."""
-    return os.environ.get("FORESTMAP_STORE") or str(forestmap_home() / "store")
+from forestmap_assets.io.home import default_store_url, forestmap_home  # noqa: F401 (re-exported)
 
 
 def _as_arrow(obj: pd.DataFrame | pa.Table) -> pa.Table:
