@@ -347,6 +347,7 @@ def load_campaign(folder: str | Path) -> Campaign:
         elif raw_step is not None:
             step = _positive(raw_step, where, "sensor.angular_step_deg")
         # the beam (footprint diameter exit + divergence x range) sets the refinement's sigma
+        # and the silhouette edges the DBH slice leaves out
         if sensor.get("beam_divergence_mrad") is not None:
             beam["beam_divergence_mrad"] = _non_negative(sensor["beam_divergence_mrad"], where,
                                                          "sensor.beam_divergence_mrad")
@@ -357,7 +358,7 @@ def load_campaign(folder: str | Path) -> Campaign:
     if not isinstance(overrides, dict):
         raise _fail(where, "params: expected a mapping of stage -> {key: value}")
     # the search box and the beam are defaults of their stages' sections; params win
-    for section, values in (("registration", search or {}), ("refine", beam)):
+    for section, values in (("registration", search or {}), ("refine", beam), ("trees", beam)):
         if values:
             overrides = {**overrides, section: {**values, **(overrides.get(section) or {})}}
     try:

@@ -32,6 +32,8 @@ def test_pairs_search_params_and_sensor(tmp_path):
     assert c.angular_step_deg == 0.108 and c.name == "test-campaign"
     # the beam sets the refinement's (issue 19); an explicit params.refine value wins
     assert c.params.refine.beam_divergence_mrad == 0.35 and c.params.refine.beam_exit_m == pytest.approx(0.0035)
+    # and the silhouette edges the DBH slice leaves out
+    assert c.params.trees.beam_divergence_mrad == 0.35 and c.params.trees.beam_exit_m == pytest.approx(0.0035)
     c = load_campaign(write_campaign(tmp_path / "q", extra="sensor: {beam_divergence_mrad: 3}\n"
                                      "params:\n  refine: {beam_divergence_mrad: 1.0}\n"))
     assert c.params.refine.beam_divergence_mrad == 1.0 and c.params.refine.beam_exit_m == 0.0

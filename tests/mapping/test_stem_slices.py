@@ -188,11 +188,19 @@ def test_merged_slices_replace_biased_cylinder_dbh():
     blend, _ = merged_slice_dbh(trees, cyl, np.array([1, 2]), clouds, poses,
                                 TreeParams(slice_min_coverage_deg=90.0))
     assert (np.abs(blend["dbh_m"] - true) < 0.75 * np.abs(trees["dbh_m"] - true)).all()
-    # the thin stem shows 120 deg (edges left out): below the default 180 deg, cylinder DBH
-    default, fits = merged_slice_dbh(trees, cyl, np.array([1, 2]), clouds, poses, TreeParams())
+    # the scans' beam is the thesis scanner's (42 mm + 3 mrad, the campaign's sensor names it):
+    # the thin stem shows 120 deg once 1.5 footprints of each silhouette edge are left out,
+    # below the default 180 deg, so its cylinder DBH stays
+    wide = TreeParams(beam_exit_m=0.042, beam_divergence_mrad=3.0)
+    default, fits = merged_slice_dbh(trees, cyl, np.array([1, 2]), clouds, poses, wide)
     assert default["dbh_m"].iat[1] == trees["dbh_m"].iat[1]
     assert "deg of the circumference seen" in default["dbh_note"].iat[1]
     assert abs(default["dbh_m"].iat[0] - true[0]) < 0.012
+    # a campaign naming no beam: a survey-grade one (5 mm + 0.3 mrad) leaves out millimetres,
+    # the thin stem shows more than 180 deg and its slice DBH is nearer the truth
+    narrow, fits = merged_slice_dbh(trees, cyl, np.array([1, 2]), clouds, poses, TreeParams())
+    assert fits["coverage_deg"].iat[1] >= 180.0 and fits["reason"].iat[1] == "", fits
+    assert abs(narrow["dbh_m"].iat[1] - true[1]) < 0.5 * abs(trees["dbh_m"].iat[1] - true[1])
 
 
 def test_gather_slices_keeps_the_band_and_the_gate():

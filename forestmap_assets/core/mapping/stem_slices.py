@@ -9,9 +9,10 @@ gathered in the global frame (:func:`gather_slices`) and one outline is fitted t
 slice (:func:`slice_dbh`):
 
 1. points beyond ``max_incidence_deg`` from the surface normal, or within ``edge_footprints``
-   beam footprint radii (spec 1.1: ``0.042 + 0.003 r`` m across) of a scan's silhouette edge,
-   are left out: there the footprint overhangs the stem (mixed pixels, +3 cm outside the bark
-   in simulation) and grazing bark reads high (+0.5-1 cm);
+   beam footprint radii (``beam_exit_m + beam_divergence_rad r`` across: the campaign's
+   scanner, spec 1.1's ``0.042 + 0.003 r`` m on the own simulator) of a scan's silhouette
+   edge, are left out: there the footprint overhangs the stem (mixed pixels, +3 cm outside the
+   bark in simulation) and grazing bark reads high (+0.5-1 cm);
 2. the points are binned by angle about the current centre; each bin gives a trimmed mean
    distance, and a second-order Fourier outline ``r(psi) = a0 + dx cos psi + dy sin psi +
    a2 cos 2psi + b2 sin 2psi`` is fitted to the bins by weighted least squares (a bin's
@@ -324,4 +325,5 @@ def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.nda
                       ellipse_prior=tp.slice_ellipse_prior, trim_sigmas=tp.slice_trim_sigmas,
                       range_sigma_m=tp.range_sigma_m, outline_sd_m=tp.slice_outline_sd_m,
                       radius_prior_sd_m=tp.slice_cylinder_sd_m or None,
-                      edge_footprints=tp.slice_edge_footprints)
+                      edge_footprints=tp.slice_edge_footprints, beam_exit_m=tp.beam_exit_m,
+                      beam_divergence_rad=1e-3 * tp.beam_divergence_mrad)
