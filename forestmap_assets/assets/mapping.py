@@ -57,6 +57,7 @@ def mapping_assets(campaign: Campaign) -> list:
         merge_elevation,
     )
     from forestmap_assets.core.mapping.link_selection import select_links
+    from forestmap_assets.core.mapping.objective_scale import objective_scale, scale_sd, widen_links
     from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
     from forestmap_assets.core.mapping.trees import cylinders_to_global, merge_trees
 
@@ -85,6 +86,10 @@ def mapping_assets(campaign: Campaign) -> list:
         regs = combine_pairs(refined_registrations).get("registrations", pd.DataFrame(columns=["status"]))
         accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
         mp = params.mapping
+        scale, scale_t, scale_n = 0.0, 0.0, 0
+        if params.refine.objective_sd_scope == "campaign":  # the objectives' common scale
+            scale, scale_t, scale_n = objective_scale(accepted, mp.objective_scale_t)
+            accepted = widen_links(accepted, scale)
         if accepted.empty:  # only the reference scan is placed: it defines the frame
             ref_pose = pd.DataFrame([{c: 0.0 for c in POSE_COLUMNS[1:-1]}]).assign(scan=reference, registered=True)
             poses = poses_table(campaign, ref_pose)
@@ -109,8 +114,12 @@ def mapping_assets(campaign: Campaign) -> list:
             poses = poses_table(campaign, sel.solution.poses)
             links = sel.links
             residuals = sel.solution.residuals
+        poses = scale_sd(poses, scale)
         bundle = {"poses": poses, "links": links, "residuals": residuals}
         meta = {
+            "objective_scale_mm_per_m": round(1000 * scale, 4),
+            "objective_scale_t": round(float(scale_t), 2) if np.isfinite(scale_t) else str(scale_t),
+            "objective_scale_links": scale_n,
             "registered": int(poses["registered"].sum()),
             "unregistered": MetadataValue.json(poses.loc[~poses["registered"], "scan"].tolist()),
             "admitted_links": int((links["status"] == "admitted").sum()) if len(links) else 0,

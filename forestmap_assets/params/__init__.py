@@ -232,6 +232,9 @@ class MappingParams(_Stage):
     max_iterations: int = 50
     check_new_link: bool = True
     chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
+    # the refinement objectives' difference per metre of baseline counts as a scale of the
+    # network when its mean is this many standard errors from 0 (core/mapping/objective_scale)
+    objective_scale_t: float = 3.0
     # correlation of two observations sharing a scan (x, y, z, heading), for the pose sigmas
     # only (core/optimal_map.shared_scan_covariance; beyond the thesis; 0 = the thesis):
     # branch-and-bound links, and links whose pose the refinement stage replaced

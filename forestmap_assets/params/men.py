@@ -69,9 +69,12 @@ class RefineSettings:
     # along the baseline on the own simulator's 3 mrad beam; benchmarks/results.md "link_sigmas")
     symmetric: bool | None = None
     symmetric_max_divergence_mrad: float = 1.0
-    # with the symmetric pairs, the model-normal objective's pose along the baseline joins the
-    # sigma (two_way.objective_spread): the bias of widened silhouettes no residual shows
+    # with the symmetric pairs, the model-normal objective's pose along the baseline
+    # (two_way.objective_spread): the bias of widened silhouettes no residual shows. Scope
+    # "link": each link's difference joins its sigma along the baseline; "campaign": the optimal
+    # map takes the part common to all links, a scale of the network (mapping.objective_scale_t)
     objective_sd: bool = True
+    objective_sd_scope: Literal["link", "campaign"] = "campaign"
     max_data_points: int = 20000  # the data cloud of each scan is thinned to at most this many
     # the two-way sigma: sqrt(H^2 + (d/2)^2 + beam^2) (H: the larger Hessian sd of the two
     # directions, d: their disagreement, beam: two_way.beam_sd) scaled per axis (x, y, z,

@@ -82,7 +82,7 @@ REFINE_COLUMNS = [
     "ref_dheading_deg", "ref_sd_x", "ref_sd_y", "ref_sd_z", "ref_sd_heading_deg", "fit_bnb_m",
     "fit_refined_m", "pairs_bnb", "pairs_refined", "iterations", "converged", "at_box_edge",
     "hue_offset", "n_data", "n_model", "moved_xy_m", "moved_z_m", "moved_heading_deg", "disagree_xy_m",
-    "disagree_z_m", "disagree_heading_deg", "seconds",
+    "disagree_z_m", "disagree_heading_deg", "objective_spread_m", "seconds",
 ]
 
 
@@ -263,7 +263,8 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
                n_data=res["n_data"], n_model=res["n_model"],
                moved_xy_m=float(np.hypot(*(new[:2] - pose[:2]))), moved_z_m=float(new[2] - pose[2]),
                moved_heading_deg=float(wrap_deg(new[3] - pose[3])), disagree_xy_m=float(np.hypot(dis[0], dis[1])),
-               disagree_z_m=float(dis[2]), disagree_heading_deg=float(dis[3]))
+               disagree_z_m=float(dis[2]), disagree_heading_deg=float(dis[3]),
+               objective_spread_m=float(res["spread_along"]))
     row["seconds"] = time.perf_counter() - t0
     return row
 
@@ -317,12 +318,14 @@ def refine_registrations(
     table = pd.DataFrame(rows, columns=REFINE_COLUMNS)
     regs["refined"] = False
     regs["refine_method"] = ""
+    regs["objective_spread_m"] = np.nan  # the used refinements' (two_way.objective_spread)
     for i, row in zip(accepted, rows, strict=True):
         regs.loc[i, "refine_method"] = row["method"]
         if row["used"] == "refined":
             regs.loc[i, POSE] = [row[f"ref_{c}"] for c in POSE]
             regs.loc[i, SD] = [row[f"ref_{c}"] for c in SD]
             regs.loc[i, "refined"] = True
+            regs.loc[i, "objective_spread_m"] = row.get("objective_spread_m", np.nan)
     return {"registrations": regs, "refinements": table}
 
 

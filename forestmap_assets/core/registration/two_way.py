@@ -232,28 +232,30 @@ def beam_sd(ways: list[_Way], s: RefineSettings) -> np.ndarray:
     return np.array([c[0] * foot, c[1] * foot, c[2] * foot, np.degrees(c[3] * foot / r)])
 
 
-def objective_spread(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings) -> np.ndarray:
-    """The sigma (x, y, m) of a symmetric refinement's pose ``pose`` along the pair's baseline
-    (inferred, issue 19): the forward way refined again from it with the model's normal alone
-    (the objective of Men 2012), at the finest radius. Where the points see the same surfaces
-    from both sides the two objectives agree; where silhouettes are widened (a wide beam's
-    mixed pixels, a rendered cloud's splats) the symmetric one lengthens the baseline and the
-    model's normal shortens it (scans rendered inside a registered cloud: +4.3 and +0.7 mm
-    over 14 links), and their difference along the baseline, which neither direction's
-    agreement sees, becomes a sigma along it: ``|d . u| (|u_x|, |u_y|)`` with ``u`` the unit
-    baseline (``benchmarks/results.md``, "render")."""
+def objective_spread(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings) -> float:
+    """How much longer (m, signed) the pair's baseline is in a symmetric refinement's pose
+    ``pose`` than with the model's normal alone (inferred, issue 19): the forward way refined
+    again from ``pose`` with the objective of Men 2012 at the finest radius, the difference
+    along the unit baseline ``u``. Where the points see the same surfaces from both sides the
+    two objectives agree; where silhouettes are widened (a wide beam's mixed pixels, a rendered
+    cloud's splats) the symmetric one lengthens the baseline and the model's normal shortens
+    it (scans rendered inside a registered cloud: +4.3 and +0.7 mm over 14 links). Neither
+    direction's agreement sees that, so with ``objective_sd_scope="link"`` it becomes the
+    link's sigma along the baseline, ``|d| (|u_x|, |u_y|)``; with ``"campaign"`` the optimal
+    map takes its systematic part over all links
+    (:func:`~forestmap_assets.core.mapping.objective_scale.objective_scale`); NaN when the
+    model-normal way finds too few pairs."""
     u = np.array(pose[:2], dtype=np.float64)  # a copy: pose stays
     length = float(np.hypot(*u))
     if length <= 0:
-        return np.zeros(2)
+        return 0.0
     one = dataclasses.replace(s, symmetric=False, two_way_radii_m=(s.two_way_radii_m[-1],),
                               two_way_iterations=(s.two_way_iterations[-1],))
     alt = _one_way(scan, ref, pose, one)
     if alt is None:
-        return np.zeros(2)
+        return float("nan")
     u /= length
-    d = float(np.dot(alt.pose[:2] - np.asarray(pose[:2], dtype=np.float64), u))
-    return np.abs(d * u)
+    return -float(np.dot(alt.pose[:2] - np.asarray(pose[:2], dtype=np.float64), u))
 
 
 def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings) -> dict:
@@ -261,7 +263,8 @@ def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings)
     Returns ``pose``, ``sd``, ``used`` (bool), ``reason``, the fits and pair counts, and the
     disagreement of the two directions ``disagree`` (x, y, z m, heading deg)."""
     pose = np.asarray(pose, dtype=np.float64)
-    out = {"pose": pose, "sd": np.full(4, np.nan), "used": False, "reason": "", "fit_bnb_m": np.nan,
+    out = {"pose": pose, "sd": np.full(4, np.nan), "used": False, "reason": "", "spread_along": np.nan,
+           "fit_bnb_m": np.nan,
            "fit_refined_m": np.nan, "pairs_bnb": 0, "pairs_refined": 0, "iterations": 0,
            "disagree": np.full(4, np.nan), "n_data": len(scan.data), "n_model": len(ref.model)}
     fwd = _one_way(scan, ref, pose, s)
@@ -276,8 +279,10 @@ def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings)
     hess = np.nan_to_num(np.nanmax([w.sd for w in ways], axis=0), nan=np.inf)
     sd = np.asarray(s.two_way_sd_scale) * np.sqrt(hess**2 + (diff / 2) ** 2 + beam_sd(ways, s) ** 2)
     sd = np.maximum(sd, s.two_way_sd_floor)
-    along = objective_spread(scan, ref, fwd.pose, s) if s.symmetric_pairs and s.objective_sd else np.zeros(2)
-    sd[:2] = np.hypot(sd[:2], along)
+    spread = objective_spread(scan, ref, fwd.pose, s) if s.symmetric_pairs and s.objective_sd else np.nan
+    if s.objective_sd_scope == "link" and np.isfinite(spread):
+        sd[:2] = np.hypot(sd[:2], abs(spread) * np.abs(mean[:2]) / max(float(np.hypot(*mean[:2])), 1e-12))
+    out["spread_along"] = spread
     fit_b = float(np.mean([w.fit_start for w in ways]))
     fit_r = float(np.mean([w.fit_end for w in ways]))
     pairs_b, pairs_r = sum(w.pairs_start for w in ways), sum(w.pairs_end for w in ways)

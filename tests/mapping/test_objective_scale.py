@@ -1,0 +1,48 @@
+"""The refinement objectives' common scale of the network (core/mapping/objective_scale.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from forestmap_assets.core.mapping.objective_scale import objective_scale, scale_sd, widen_links
+
+
+def _links(spread_per_m, rng, refined=True):
+    n = len(spread_per_m)
+    ang = rng.uniform(-np.pi, np.pi, n)
+    length = rng.uniform(5.0, 15.0, n)
+    return pd.DataFrame({"scan": [f"s{i}" for i in range(n)], "reference": "r",
+                         "dx": length * np.cos(ang), "dy": length * np.sin(ang), "dz": 0.0, "dheading_deg": 0.0,
+                         "sd_x": 0.001, "sd_y": 0.001, "sd_z": 0.0008, "sd_heading_deg": 0.005,
+                         "refined": refined, "objective_spread_m": np.asarray(spread_per_m) * length})
+
+
+def test_a_common_lengthening_is_a_scale_and_noise_is_not():
+    rng = np.random.default_rng(1)
+    # rendered-like: every link about 0.35 mm/m longer with the symmetric objective
+    links = _links(0.00035 + rng.normal(0, 0.0001, 11), rng)
+    scale, t, n = objective_scale(links)
+    assert n == 11 and t > 5 and abs(scale - 0.00035) < 0.0001
+    # Sylva-like: differences of either sign, no common part
+    noisy = _links(rng.normal(0, 0.0003, 9), rng)
+    assert objective_scale(noisy)[0] == 0.0
+    # too few refined links, or links the refinement did not replace, give none
+    assert objective_scale(links.head(2)) == (0.0, 0.0, 2)
+    assert objective_scale(_links(np.full(6, 0.0004), rng, refined=False))[2] == 0
+
+
+def test_links_and_scans_take_the_scale_along_their_baselines():
+    rng = np.random.default_rng(2)
+    links = _links(np.full(4, 0.0004), rng)
+    links.loc[0, "refined"] = False
+    wide = widen_links(links, 0.0004)
+    assert wide.loc[0, "sd_x"] == links.loc[0, "sd_x"]  # branch and bound: not refined
+    grown = np.hypot(0.001, 0.0004 * links[["dx", "dy"]].to_numpy()[1:])
+    np.testing.assert_allclose(wide[["sd_x", "sd_y"]].to_numpy()[1:], grown)
+    assert widen_links(links, 0.0) is links
+    poses = pd.DataFrame({"scan": ["r", "a"], "x": [0.0, 12.0], "y": [0.0, -5.0], "sd_x": [0.0, 0.002],
+                          "sd_y": [0.0, 0.002]})
+    out = scale_sd(poses, -0.0004)
+    np.testing.assert_allclose(out["sd_x"], [0.0, np.hypot(0.002, 0.0048)])
+    np.testing.assert_allclose(out["sd_y"], [0.0, np.hypot(0.002, 0.002)])
