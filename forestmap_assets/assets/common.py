@@ -58,7 +58,7 @@ STAGE_PARAMS: dict[str, tuple[str, ...]] = {
     "pairwise_registrations": ("registration", "elevation"),
     "refined_registrations": ("refine",),
     "retry_pairs": ("registration",),
-    "optimal_map": ("mapping", "refine"),
+    "optimal_map": ("mapping",),
     "residual_checks": ("mapping",),
     "integrated_map": ("elevation",),
     "tree_list": ("trees",),

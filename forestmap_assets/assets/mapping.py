@@ -86,10 +86,8 @@ def mapping_assets(campaign: Campaign) -> list:
         regs = combine_pairs(refined_registrations).get("registrations", pd.DataFrame(columns=["status"]))
         accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
         mp = params.mapping
-        scale, scale_t, scale_n = 0.0, 0.0, 0
-        if params.refine.objective_sd_scope == "campaign":  # the objectives' common scale
-            scale, scale_t, scale_n = objective_scale(accepted, mp.objective_scale_t)
-            accepted = widen_links(accepted, scale)
+        scale, scale_t, scale_n = objective_scale(accepted, mp.objective_scale_t)  # the objectives'
+        accepted = widen_links(accepted, scale)
         if accepted.empty:  # only the reference scan is placed: it defines the frame
             ref_pose = pd.DataFrame([{c: 0.0 for c in POSE_COLUMNS[1:-1]}]).assign(scan=reference, registered=True)
             poses = poses_table(campaign, ref_pose)

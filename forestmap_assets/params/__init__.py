@@ -260,7 +260,8 @@ class TreeParams(_Stage):
     # section sets both (the own simulator names the thesis scanner's, spec 1.1: 42 mm + 3 mrad);
     # without one a survey-grade TLS beam (5 mm + 0.3 mrad): the thesis scanner's footprint left
     # out 5 cm of each silhouette edge at 10 m, and on clouds rendered inside a registered TLS
-    # cloud 37 of 40 stems then showed less than 180 deg (benchmarks/results.md, "dbh")
+    # cloud 34-37 of 40 stems then showed less than 180 deg (benchmarks/results.md,
+    # "objective_scale")
     beam_exit_m: float = 0.005
     beam_divergence_mrad: float = 0.3
     slice_bin_deg: float = 10.0  # angle bins of the outline fit

@@ -28,16 +28,26 @@ import pandas as pd
 SPREAD = "objective_spread_m"
 
 
+def _with_spread(links: pd.DataFrame) -> np.ndarray:
+    """Refined links that carry an objective difference (the refinement records it only for
+    the scope ``"campaign"``)."""
+    if SPREAD not in links or links.empty:
+        return np.zeros(len(links), bool)
+    ok = np.isfinite(links[SPREAD].to_numpy(float))
+    if "refined" in links:
+        ok &= links["refined"].to_numpy(bool)
+    return ok
+
+
 def objective_scale(links: pd.DataFrame, t_min: float = 3.0, min_links: int = 3) -> tuple[float, float, int]:
     """``(scale, t, n)``: the common difference per metre of baseline (0 when there is none),
     the mean's t statistic and the number of refined links with a difference."""
-    if SPREAD not in links or links.empty:
+    ok = _with_spread(links)
+    if not ok.any():
         return 0.0, 0.0, 0
     spread = links[SPREAD].to_numpy(float)
     length = np.hypot(links["dx"].to_numpy(float), links["dy"].to_numpy(float))
-    ok = np.isfinite(spread) & (length > 0.5)
-    if "refined" in links:
-        ok &= links["refined"].to_numpy(bool)
+    ok &= length > 0.5
     n = int(ok.sum())
     if n < max(min_links, 2):
         return 0.0, 0.0, n
@@ -50,12 +60,10 @@ def objective_scale(links: pd.DataFrame, t_min: float = 3.0, min_links: int = 3)
 def widen_links(links: pd.DataFrame, scale: float) -> pd.DataFrame:
     """``links`` with each refined link's x, y sigma grown by ``|scale| L`` along its baseline
     (``|scale dx|``, ``|scale dy|`` in quadrature)."""
-    if not scale or SPREAD not in links or links.empty:
+    if not scale:
         return links
     out = links.copy()
-    hit = np.isfinite(out[SPREAD].to_numpy(float))
-    if "refined" in out:
-        hit &= out["refined"].to_numpy(bool)
+    hit = _with_spread(links)
     for axis, d in (("sd_x", "dx"), ("sd_y", "dy")):
         sd = out[axis].to_numpy(float)
         out[axis] = np.where(hit, np.hypot(sd, scale * out[d].to_numpy(float)), sd)

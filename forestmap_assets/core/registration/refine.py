@@ -318,14 +318,17 @@ def refine_registrations(
     table = pd.DataFrame(rows, columns=REFINE_COLUMNS)
     regs["refined"] = False
     regs["refine_method"] = ""
-    regs["objective_spread_m"] = np.nan  # the used refinements' (two_way.objective_spread)
+    # the used refinements' objective difference, for the optimal map's common scale (with the
+    # scope "link" it is in each link's sigma already: two_way.objective_spread)
+    regs["objective_spread_m"] = np.nan
     for i, row in zip(accepted, rows, strict=True):
         regs.loc[i, "refine_method"] = row["method"]
         if row["used"] == "refined":
             regs.loc[i, POSE] = [row[f"ref_{c}"] for c in POSE]
             regs.loc[i, SD] = [row[f"ref_{c}"] for c in SD]
             regs.loc[i, "refined"] = True
-            regs.loc[i, "objective_spread_m"] = row.get("objective_spread_m", np.nan)
+            if s.objective_sd_scope == "campaign":
+                regs.loc[i, "objective_spread_m"] = row.get("objective_spread_m", np.nan)
     return {"registrations": regs, "refinements": table}
 
 
