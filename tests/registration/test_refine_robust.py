@@ -51,3 +51,26 @@ def test_tukey_weights_resist_pairs_of_a_different_surface():
     exy_rb, eh_rb = _run(4.685)
     assert exy_ls > 0.005  # least squares is pulled toward the far-side points
     assert exy_rb < 0.001 and eh_rb < 0.01, (exy_rb, eh_rb)
+
+
+def test_pruned_queries_find_the_pairs_of_a_full_query():
+    """point_to_plane.Reach leaves out only points that cannot pair: the pairs, their model
+    indices and normals are those of the full query wherever the points moved, also beyond
+    the distance it measured (then it queries every point)."""
+    from forestmap_assets.core.registration.point_to_plane import Reach, plane_pairs
+
+    rng = np.random.default_rng(7)
+    model = _scene(rng)
+    normals = pca_normals(model, 12)[0]
+    tree = cKDTree(model)
+    data = _scene(rng) + rng.normal(0, 0.02, (len(model), 3))
+    reach = Reach(tree, data, 0.15)
+    assert 0 < np.isfinite(reach.d0).mean() < 1
+    for shift in (0.0, 0.01, 0.04, 0.2):
+        moved = data @ pose4_to_matrix([shift, -shift / 2, 0.0, 10 * shift])[0].T + shift
+        for radius in (0.05, 0.1):
+            full = plane_pairs(tree, normals, moved, radius)
+            pruned = plane_pairs(tree, normals, moved, radius, reach=reach)
+            for a, b in zip(full, pruned, strict=True):
+                np.testing.assert_array_equal(a, b)
+            assert full[0].sum() > 100

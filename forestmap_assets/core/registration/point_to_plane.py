@@ -12,8 +12,31 @@ from forestmap_assets.core.registration.icp_uncertainty import pose_jacobian
 MIN_NORMAL_DOT = 0.5  # symmetric pairs: the two normals within 60 deg (the same side of a surface)
 
 
+class Reach:
+    """Which data points can still find a model point, so that an ICP queries only those
+    (inferred, issue 16): the distance to a point set is 1-Lipschitz, so a point whose nearest
+    model point was ``d0`` away at the positions ``base`` has none within ``r`` after moving by
+    ``delta`` unless ``d0 <= r + delta``. Exact: the pairs are those of a full query. Most of a
+    scan's thinned points have no partner in the other scan (about 85 % on Sylva's surveys at
+    5 cm), so the queries of a refinement shrink about five-fold."""
+
+    def __init__(self, tree: cKDTree, base: np.ndarray, bound_m: float):
+        self.base = np.asarray(base, dtype=np.float64)
+        self.bound = float(bound_m)
+        self.d0 = tree.query(self.base, distance_upper_bound=self.bound, workers=-1)[0]
+
+    def candidates(self, moved: np.ndarray, radius_m: float) -> np.ndarray | None:
+        """Indices of the points that may pair within ``radius_m`` at ``moved`` (None: any may,
+        the points moved beyond what ``d0`` was measured for)."""
+        delta = np.sqrt(((moved - self.base) ** 2).sum(axis=1))
+        if radius_m + float(delta.max(initial=0.0)) >= self.bound:
+            return None
+        return np.flatnonzero(self.d0 <= radius_m + delta + 1e-9)
+
+
 def plane_pairs(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float,
-                moved_normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                moved_normals: np.ndarray | None = None,
+                reach: Reach | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Data points paired with their nearest model point within ``radius_m``: (mask of the
     paired data points, their model indices, the pairs' normals). Pairs without a model normal
     are left out.
@@ -24,8 +47,13 @@ def plane_pairs(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m:
     the data point behind it by ``t^2 / 2R`` (t: their offset, R: the stem's radius), pulling
     the data toward the model's sensor, both ways: a contraction of every baseline by about
     0.1 mm a metre on exact clouds (issue 19, inferred). Pairs whose normals differ by more
-    than 60 deg are left out."""
-    d, idx = tree.query(moved, distance_upper_bound=radius_m, workers=-1)
+    than 60 deg are left out. ``reach``: query only the points that may pair (:class:`Reach`)."""
+    near = None if reach is None else reach.candidates(moved, radius_m)
+    if near is None:
+        d, idx = tree.query(moved, distance_upper_bound=radius_m, workers=-1)
+    else:
+        d, idx = np.full(len(moved), np.inf), np.full(len(moved), tree.n)
+        d[near], idx[near] = tree.query(moved[near], distance_upper_bound=radius_m, workers=-1)
     ok = np.isfinite(d)
     ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
     if moved_normals is not None:
@@ -39,10 +67,10 @@ def plane_pairs(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m:
 
 
 def plane_residuals(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float,
-                    moved_normals: np.ndarray | None = None) -> np.ndarray:
+                    moved_normals: np.ndarray | None = None, reach: Reach | None = None) -> np.ndarray:
     """Signed point-to-plane distances ``n . (m - p)`` of the moved data points to their nearest
     model point within ``radius_m`` (pairs and normals as :func:`plane_pairs`)."""
-    ok, idx, nv = plane_pairs(tree, normals, moved, radius_m, moved_normals)
+    ok, idx, nv = plane_pairs(tree, normals, moved, radius_m, moved_normals, reach)
     return (nv * (tree.data[idx] - moved[ok])).sum(axis=1)
 
 
@@ -59,12 +87,14 @@ def point_to_plane_4dof(
     tol: float = 1e-7,
     robust_k: float | None = None,
     data_normals: np.ndarray | None = None,
+    reach: Reach | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """4-DoF point-to-plane Gauss-Newton ICP (x, y, z, heading): pose, final partner indices
     (-1 none) and iterations (inferred). With ``robust_k``, iteratively re-weighted least squares with Tukey's biweight at
     ``robust_k`` times the residuals' robust spread (1.4826 MAD), so that pairs of different
     surfaces within ``max_distance_m`` do not bias the pose (inferred). ``data_normals``: the
-    symmetric objective (:func:`plane_pairs`)."""
+    symmetric objective (:func:`plane_pairs`); ``reach``: the pruned queries of :class:`Reach`
+    (its ``base``: ``data`` moved by ``init_pose`` or any other positions)."""
     model = np.asarray(model_xyz, dtype=np.float64)
     normals = np.asarray(model_normals, dtype=np.float64)
     data = np.asarray(data_xyz, dtype=np.float64)
@@ -76,7 +106,7 @@ def point_to_plane_4dof(
         r, t = pose4_to_matrix(pose)
         moved = data @ r.T + t
         moved_n = None if data_normals is None else data_normals @ r.T
-        ok, idx, nv = plane_pairs(tree, normals, moved, max_distance_m, moved_n)
+        ok, idx, nv = plane_pairs(tree, normals, moved, max_distance_m, moved_n, reach)
         partner = np.full(len(data), -1)
         partner[ok] = idx
         if ok.sum() < 4:
