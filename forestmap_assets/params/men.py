@@ -86,11 +86,7 @@ class RefineSettings:
     # scans rendered inside a registered cloud were 2.3 and 1.6 times their floored sd
     # (benchmarks/results.md "render")
     two_way_sd_floor: tuple[float, float, float, float] = (0.001, 0.001, 0.0008, 0.005)
-    # relative: the refined fit may be this much worse (the fit's noise: over 91 refined pairs of
-    # 8 surveys, those whose pose came out closer to the truth read up to +1.2 %, the ones that
-    # went astray +1.75 % and more, and disagreed both ways by 2-3 cm; 0.5 % before kept four
-    # pairs of which three the refinement bettered; benchmarks/results.md "survey")
-    max_fit_loss: float = 0.015
+    max_fit_loss: float = 0.005  # relative: the refined fit may be this much worse (noise)
 
     @property
     def symmetric_pairs(self) -> bool:

@@ -19,8 +19,7 @@ own fit rather than because it stays within a box of the coarse sigma:
    ``min_pairs`` nor below ``min_overlap_kept`` of its value at the branch-and-bound pose;
 3. **residuals**: the mean point-to-plane distance of both directions together (within the fine
    radius) must not be worse than at the branch-and-bound pose by more than ``max_fit_loss``
-   (relative, 1.5 %: the fit of a refinement that bettered the pose read up to 1.2 % worse on the
-   surveys measured, as the robust weights trade a few far pairs for the right ones).
+   (relative; at the noise floor the two differ by a few hundredths of a millimetre).
 
 Each pair's normal is the normalised sum of the two points' normals (``symmetric``; the
 symmetric objective of Rusinkiewicz 2019, :func:`~.point_to_plane.plane_pairs`): with the model's
