@@ -256,8 +256,9 @@ def test_empty_segments_give_empty_table():
 
 
 def test_neighbour_pairs_runs_equal_the_listing():
-    """The overlapping segments found by binary search per row equal those of listing every
-    segment of the rows within reach, in the same order; overlapping rows take the listing."""
+    """The overlapping segments found by binary search per row (compiled and in numpy) equal
+    those of listing every segment of the rows within reach, in the same order; overlapping
+    rows take the listing."""
     from forestmap_assets.core.features.circle_models import _SegData
     from forestmap_assets.core.features.segment_neighbours import (
         neighbour_pairs,
@@ -284,6 +285,8 @@ def test_neighbour_pairs_runs_equal_the_listing():
     listed = neighbour_pairs_listed(sd, k, key)
     assert fast[0].size > 1000
     assert np.array_equal(fast[0], listed[0]) and np.array_equal(fast[1], listed[1])
+    runs = neighbour_pairs(sd, k, compiled=False)  # the numpy runs equal the compiled ones
+    assert np.array_equal(runs[0], fast[0]) and np.array_equal(runs[1], fast[1])
     # a segment inside another of its row (ends no longer ascending): the listing answers
     sd.col0[0], sd.col1[0] = 0, 30
     sd.col0[1], sd.col1[1], sd.row[1], sd.chain[1] = 5, 20, sd.row[0], sd.chain[0]

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from forestmap_assets.core.features._neighbour_kernels import HAVE_NUMBA, nb_neighbour_pairs
 
-def neighbour_pairs(sd, k_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+
+def neighbour_pairs(sd, k_rows: np.ndarray, compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (s, t): t in the chain of s, |row_t - row_s| <= k_rows[s], column intervals overlap
     (spec 3.2, "overlapping segments above and below"). Sorted by s, then as the segments'
     (chain, row) and index; includes (s, s).
@@ -17,7 +19,9 @@ def neighbour_pairs(sd, k_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     order their ``col1`` ascend too and the ones overlapping [col0_s, col1_s] in a row are one
     run found by two binary searches per row offset: the work follows the pairs, not the
     segments a row holds (a fine render's ground chain has up to 100 a row; listing every
-    segment of the rows and filtering took 5 s of a 16 s scan)."""
+    segment of the rows and filtering took 5 s of a 16 s scan). ``compiled``: the runs listed by
+    the numba kernel where it exists (the same pairs; 0.44 -> about 0.05 s a phase on a scan
+    rendered inside a registered cloud, 88 k segments), else in numpy."""
     n = sd.row.size
     nrows = int(sd.row.max()) + 2
     key = sd.chain * nrows + sd.row
@@ -31,6 +35,10 @@ def neighbour_pairs(sd, k_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     k_max = int(k_rows.max(initial=-1))
     if k_max < 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if compiled and HAVE_NUMBA:
+        i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)  # noqa: E731
+        return nb_neighbour_pairs(i64(by_c1), i64(by_c0), i64(order), i64(key), i64(sd.row), i64(sd.col0),
+                                  i64(sd.col1), i64(k_rows), nrows, width)
     offs = np.arange(-k_max, k_max + 1)
     s = np.repeat(np.arange(n), offs.size)
     d = np.tile(offs, n)
