@@ -87,6 +87,17 @@ class RefineSettings:
     # (benchmarks/results.md "render")
     two_way_sd_floor: tuple[float, float, float, float] = (0.001, 0.001, 0.0008, 0.005)
     max_fit_loss: float = 0.005  # relative: the refined fit may be this much worse (noise)
+    # a used two-way refinement's heading: "both" = the inverse-variance mean of the refined and
+    # the branch-and-bound headings (their sigmas; the translation kept where the overlap's
+    # points were), "refined" = the refinement's alone (before). The raw points fix the
+    # translation better, the stems' centres and the ground the heading about as well or better:
+    # heading error RMS over the refined links, branch and bound / refined / both, 100-scan
+    # campaign 0.0124 / 0.0345 / 0.0130 deg, own full resolution 0.017 / 0.024 / 0.011, Sylva 1-5
+    # 0.008 / 0.011 / 0.009, rendered 0.006 / 0.004 / 0.004 (benchmarks/results.md "refine_time")
+    heading_from: Literal["both", "refined"] = "both"
+    # ... when the two agree within this many sigmas of their difference; else the refined one
+    # (a branch-and-bound heading off by more than its sigma says is what the refinement is for)
+    heading_agree_sigmas: float = 3.0
 
     @property
     def symmetric_pairs(self) -> bool:

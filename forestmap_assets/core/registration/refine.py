@@ -71,7 +71,12 @@ from forestmap_assets.core.registration.point_to_plane import (
     plane_residuals,
     point_to_plane_4dof,
 )
-from forestmap_assets.core.registration.two_way import RefineCloud, crop_mask, two_way_refine
+from forestmap_assets.core.registration.two_way import (
+    RefineCloud,
+    crop_mask,
+    fuse_heading,
+    two_way_refine,
+)
 from forestmap_assets.params.men import RefineSettings
 
 POSE = ["dx", "dy", "dz", "dheading_deg"]
@@ -254,6 +259,9 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
     row.update({f"bnb_{k}": v for k, v in zip(POSE, pose, strict=True)})
     row.update({f"bnb_{k}": v for k, v in zip(SD, np.nan_to_num(np.asarray(sd, dtype=np.float64)), strict=True)})
     res = two_way_refine(scan, ref, pose, settings)
+    if res["used"] and settings.heading_from == "both":
+        res["pose"], res["sd"] = fuse_heading(res["pose"], res["sd"], pose, np.asarray(sd, dtype=np.float64),
+                                              res["centre"], settings.heading_agree_sigmas)
     new, dis = res["pose"], res["disagree"]
     row.update({f"ref_{k}": v for k, v in zip(POSE, new, strict=True)})
     row.update({f"ref_{k}": v for k, v in zip(SD, res["sd"], strict=True)})

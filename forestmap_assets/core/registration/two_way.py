@@ -189,6 +189,7 @@ class _Way:
     pairs_end: int
     iterations: int
     range_m: float  # median range of the paired data points from their own sensor
+    centre: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # of the paired data points
 
 
 def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineSettings,
@@ -229,8 +230,9 @@ def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineS
     cov = icp_covariance(moved[ok], model_cloud.model[idx], t1, normals=nv, dof=4,
                          correlation_m=s.correlation_m)
     rng = float(np.median(np.linalg.norm(data[ok], axis=1))) if ok.any() else np.nan
+    centre = data[ok].mean(axis=0) if ok.any() else np.full(3, np.nan)
     return _Way(pose=new, sd=pose_sd(cov), fit_start=float(np.abs(start_res).mean()), fit_end=fit_end,
-                pairs_start=len(start_res), pairs_end=len(end_res), iterations=its, range_m=rng)
+                pairs_start=len(start_res), pairs_end=len(end_res), iterations=its, range_m=rng, centre=centre)
 
 
 def beam_sd(ways: list[_Way], s: RefineSettings) -> np.ndarray:
@@ -274,12 +276,40 @@ def objective_spread(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSetting
     return -float(np.dot(alt.pose[:2] - np.asarray(pose[:2], dtype=np.float64), u))
 
 
+def fuse_heading(refined, sd_refined, bnb, sd_bnb, centre,
+                 agree_sigmas: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """The refined pose with the inverse-variance mean of its heading and the branch-and-bound
+    one (inferred, issue 17, 19; ``RefineSettings.heading_from``), and its sigmas (heading
+    ``(1/sd_r^2 + 1/sd_b^2)^-1/2``). The heading turns the scan about its sensor; the
+    translation follows so that ``centre`` (the paired data points' mean, the scan's frame) stays
+    where the refinement put it: the overlap fixes where those points are, not the lever arm to
+    the sensor. Unchanged where a sigma is missing or the headings differ by more than
+    ``agree_sigmas`` sigmas of their difference (the branch-and-bound sigma is smallest exactly
+    where stem shapes bias it, issue 19)."""
+    refined = np.asarray(refined, dtype=np.float64).copy()
+    sd = np.asarray(sd_refined, dtype=np.float64).copy()
+    sr, sb = sd[3], float(sd_bnb[3])
+    if not (np.isfinite(sr) and np.isfinite(sb) and sr > 0 and sb > 0 and np.all(np.isfinite(centre))):
+        return refined, sd
+    gap = wrap_deg(float(bnb[3]) - refined[3])
+    if abs(gap) > agree_sigmas * np.hypot(sr, sb):
+        return refined, sd
+    heading = refined[3] + sr**2 / (sr**2 + sb**2) * gap
+    r0, t0 = pose4_to_matrix(refined)
+    r1, _ = pose4_to_matrix(np.r_[refined[:3], heading])
+    refined[:3] = t0 + (r0 - r1) @ np.asarray(centre, dtype=np.float64)
+    refined[3] = wrap_deg(heading)
+    sd[3] = (sr**-2 + sb**-2) ** -0.5
+    return refined, sd
+
+
 def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings) -> dict:
     """Refine the pose of ``scan`` in ``ref``'s frame both ways and test the result (module doc).
     Returns ``pose``, ``sd``, ``used`` (bool), ``reason``, the fits and pair counts, and the
     disagreement of the two directions ``disagree`` (x, y, z m, heading deg)."""
     pose = np.asarray(pose, dtype=np.float64)
     out = {"pose": pose, "sd": np.full(4, np.nan), "used": False, "reason": "", "spread_along": np.nan,
+           "centre": np.full(3, np.nan),
            "fit_bnb_m": np.nan,
            "fit_refined_m": np.nan, "pairs_bnb": 0, "pairs_refined": 0, "iterations": 0,
            "disagree": np.full(4, np.nan), "n_data": len(scan.data), "n_model": len(ref.model)}
@@ -303,7 +333,7 @@ def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings)
     fit_r = float(np.mean([w.fit_end for w in ways]))
     pairs_b, pairs_r = sum(w.pairs_start for w in ways), sum(w.pairs_end for w in ways)
     out.update(pose=mean, sd=sd, fit_bnb_m=fit_b, fit_refined_m=fit_r, pairs_bnb=pairs_b, pairs_refined=pairs_r,
-               iterations=sum(w.iterations for w in ways), disagree=diff)
+               iterations=sum(w.iterations for w in ways), disagree=diff, centre=fwd.centre)
     moved = np.abs(np.r_[mean[:3] - pose[:3], wrap_deg(mean[3] - pose[3])])
     tol = np.maximum(np.r_[s.agree_m, s.agree_m, s.agree_m, s.agree_deg], s.agree_sigmas * s.sd_inflation * hess)
     if np.any(moved[:3] >= s.max_shift_m * (1 - 1e-6)) or moved[3] >= s.max_turn_deg * (1 - 1e-6):
