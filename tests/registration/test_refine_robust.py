@@ -74,3 +74,28 @@ def test_pruned_queries_find_the_pairs_of_a_full_query():
             for a, b in zip(full, pruned, strict=True):
                 np.testing.assert_array_equal(a, b)
             assert full[0].sum() > 100
+
+
+def test_fused_heading_is_the_weighted_mean_and_keeps_the_overlap_in_place():
+    """two_way.fuse_heading: the heading is the inverse-variance mean of the refined and the
+    branch-and-bound ones, its sigma the combined one; the overlap's centre lands where the
+    refined pose put it; headings that disagree beyond 3 sigmas keep the refined pose."""
+    from forestmap_assets.core.registration.two_way import fuse_heading
+
+    refined = np.array([10.0, -4.0, 0.3, 20.0])
+    sd = np.array([0.002, 0.002, 0.001, 0.03])
+    bnb = np.array([10.01, -4.02, 0.31, 20.04])
+    sd_bnb = np.array([0.005, 0.005, 0.002, 0.01])
+    centre = np.array([6.0, 3.0, -1.0])
+    pose, sd_f = fuse_heading(refined, sd, bnb, sd_bnb, centre, 3.0)
+    w = 0.03**2 / (0.03**2 + 0.01**2)
+    assert np.isclose(pose[3], 20.0 + w * 0.04) and np.isclose(sd_f[3], (0.03**-2 + 0.01**-2) ** -0.5)
+    r0, t0 = pose4_to_matrix(refined)
+    r1, t1 = pose4_to_matrix(pose)
+    np.testing.assert_allclose(r1 @ centre + t1, r0 @ centre + t0, atol=1e-12)
+    assert np.allclose(sd_f[:3], sd[:3]) and pose[2] == refined[2]
+    far = bnb + np.array([0, 0, 0, 0.2])  # 0.24 deg apart, 7.6 sigmas
+    same, sd_same = fuse_heading(refined, sd, far, sd_bnb, centre, 3.0)
+    assert np.array_equal(same, refined) and np.array_equal(sd_same, sd)
+    nan_sd = fuse_heading(refined, sd, bnb, np.full(4, np.nan), centre, 3.0)[0]
+    assert np.array_equal(nan_sd, refined)
