@@ -17,8 +17,9 @@ class Reach:
     (inferred, issue 16): the distance to a point set is 1-Lipschitz, so a point whose nearest
     model point was ``d0`` away at the positions ``base`` has none within ``r`` after moving by
     ``delta`` unless ``d0 <= r + delta``. Exact: the pairs are those of a full query. Most of a
-    scan's thinned points have no partner in the other scan (about 85 % on Sylva's surveys at
-    5 cm), so the queries of a refinement shrink about five-fold."""
+    scan's thinned points have no partner in the other scan (on a Sylva survey 85 % within 5 cm,
+    62 % within 10 cm), so each step queries 2.5-6 times fewer points (a refinement 1.04 ->
+    0.72 s with the other changes of 747c212)."""
 
     def __init__(self, tree: cKDTree, base: np.ndarray, bound_m: float):
         self.base = np.asarray(base, dtype=np.float64)
