@@ -56,7 +56,11 @@ class RefineSettings:
     agree_deg: float = 0.05
     agree_sigmas: float = 3.0
     min_overlap_kept: float = 0.9
-    two_way_model_voxel_m: float = 0.04  # the model voxel of the two-way refinement
+    # the model voxel of the two-way refinement: 5 cm (was 4 cm) keeps 10 % (Sylva) to 25 % (own
+    # full resolution) fewer model points; median refinement a pair, own 1.15 / 1.10 -> 0.86 /
+    # 0.88 s, rendered 1.00 / 0.93 -> 0.82 / 0.66 s, Sylva 0.57-0.67 -> 0.50-0.61 s; the same
+    # accuracy on Sylva, rendered and 100 scans (benchmarks/results.md "refine_time")
+    two_way_model_voxel_m: float = 0.05
     # the scanner's beam (a campaign's sensor section sets these): footprint diameter
     # beam_exit_m + beam_divergence_mrad * range, and the share of it a link's sigma takes
     # (x, y, z, heading; two_way.beam_sd)
