@@ -194,6 +194,16 @@ class RegistrationParams(_Stage):
     heading_temperature: float | None = 6.0
     ground_min_sd_m: float = 0.002
     feature_z_sd_m: float = 0.15
+    # (beyond the thesis, issue 19; core/registration/stem_polish.py) an accepted pose polished by
+    # least squares on its matched stem axes, its heading sigma from their scatter times
+    # polish_sd_scale; not used where it would move the pose by more than polish_max_sigmas of
+    # the branch-and-bound sigmas. Off here (the thesis' structured sites), on in the forest
+    # preset. 1.2: the polished links' heading error / sd over 9 surveys pooled 0.94 with 1.0, and
+    # the scans' heading error / sd RMS Sylva 1-5 / own 1-2 / rendered 1-2 1.02 / 1.36 / 1.04 with
+    # 1.0, 0.84 / 1.12 / 0.94 with 1.2 (benchmarks/results.md "stem_polish")
+    stem_polish: bool = False
+    polish_sd_scale: float = 1.2
+    polish_max_sigmas: float = 3.0
     # pairs with no prior: 'bnb' searches the no-prior box (full circle, plot-size xy); 'fourier'
     # centres the forest box on the Fourier coarse registration of the raw points (men spec 4);
     # 'bnb' is the default, from benchmarks/results.md "Coarse registration without a prior"
@@ -354,6 +364,9 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # quarter resolution, refined links (fitted on the raw points) at half resolution
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05),
                     "refined_scan_correlation": (0.1, 0.1, 0.1, 0.0)},
+        # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
+        # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
+        "registration": {"stem_polish": True},
     },
     "outdoor": {
         "circles": {"symmetry_threshold_m": 0.0041},

@@ -70,6 +70,7 @@ EXTRA_COLUMNS = [
     "matched_points", "matched_stems", "peak_mass_share", "n_hypotheses", "best_rival_gap", "cloud_cells", "confidence",
     "dz_features", "sd_z_features", "z_source",
     "support_m", "weak_direction_deg", "rival_ratio", "rival_separation_m", "rival_dx", "rival_dy",
+    "polish_segments", "polish_dheading_deg", "polish_reason",
 ]
 
 
@@ -315,6 +316,16 @@ def register_candidates(
             if g.ok and abs(g.dz - centre[2]) <= 3 * gate + 0.1:
                 centre[2], sd[2] = g.dz, g.sd
                 extra["z_source"] = f"ground ({g.n_cells} cells)"
+        if status == "accepted" and params.stem_polish:
+            from forestmap_assets.core.registration.stem_polish import polish_pose
+
+            done = polish_pose(submaps[c.scan], submaps[c.reference], centre, sd,
+                               match_m=max(3 * params.sigma_m, params.final_cell_m),
+                               sd_scale=params.polish_sd_scale, max_sigmas=params.polish_max_sigmas)
+            extra.update(polish_segments=done.segments, polish_reason=done.reason,
+                         polish_dheading_deg=float(wrap_deg(done.pose[3] - centre[3])))
+            if not done.reason:
+                centre[[0, 1, 3]], sd[3] = done.pose[[0, 1, 3]], done.sd_heading_deg
         peak = np.asarray(res.peak, dtype=float)
         rows.append({
             "scan": c.scan, "reference": c.reference,

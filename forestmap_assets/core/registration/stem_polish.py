@@ -1,0 +1,128 @@
+"""Least-squares polish of an accepted branch-and-bound pose on its matched stem axes, and the
+heading sigma that the stems' own scatter gives (forestmap's step beyond the thesis, issue 19;
+inferred).
+
+The branch-and-bound pose is the weighted centre of its final cell cloud (spec 6.5), and its
+heading sigma is then mostly the final cell's quantisation, ``step / sqrt(12)``: 0.0226 deg on
+Sylva's and rendered surveys, whatever the data say (the headings' errors there were 0.004-0.013
+deg RMS, error / sd 0.23-0.57). Here the scan's sub-map points (spec 6.2: samples along the
+cylinder segments' axes) are moved by the pose and paired with the nearest reference sub-map
+point within ``match_m``; each cylinder segment with at least ``min_points`` pairs gives one
+mean horizontal residual ``e_k`` at its mean position ``q_k``. A rotation ``w`` about the
+segments' centroid ``c`` and a shift ``t`` are fitted by least squares,
+
+    e_k = t + w (-(q_k - c)_y, (q_k - c)_x),
+
+re-paired and fitted again until the rotation is below 1e-7 rad; segments farther from the fit
+than ``trim_sigmas`` times their RMS residual are left out. The heading sigma is ``sd_scale`` (1.2) times
+the fit's own (residual variance times the inverse normal matrix), which is what the stems'
+scatter allows. Measured on the branch-and-bound links of 9 surveys (Sylva 1-5, own simulator 1-2 at
+full resolution, rendered 1-2; benchmarks/results.md "stem_polish"): heading error RMS Sylva
+0.005-0.013 -> 0.0015-0.006 deg, rendered 0.007 / 0.004 -> 0.002 / 0.001 deg, own 0.017 / 0.011
+-> 0.009 / 0.015 deg; error / the fit's own sd 0.37-1.43 (pooled 0.94). The fitted shift is applied
+too, but the sub-maps' axes share biases that their scatter does not show (the same fit's x, y
+sigma was 1.4-5.4 times too small), so the x, y, z sigmas stay the branch and bound's.
+
+The polish is not used (the pose stays) when fewer than ``min_segments`` segments pair, or when
+it would move the pose by more than ``max_sigmas`` of the branch-and-bound sigmas."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class Polish:
+    """The polished pose (dx, dy, dz, dheading_deg), its heading sigma (deg), the number of
+    segments in the last fit, and why the polish was not used ('' when it was)."""
+
+    pose: np.ndarray
+    sd_heading_deg: float
+    segments: int
+    reason: str = ""
+
+
+def _moved(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    h = np.radians(pose[3])
+    c, s = np.cos(h), np.sin(h)
+    return points @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) + pose[:3]
+
+
+def _segment_residuals(moved: np.ndarray, ids: np.ndarray, tree: cKDTree, ref_xy: np.ndarray,
+                       match_m: float, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean position (n, 2) and mean horizontal residual (n, 2) of each segment with at least
+    ``min_points`` points paired within ``match_m``."""
+    d, j = tree.query(moved, distance_upper_bound=match_m)
+    ok = np.isfinite(d)
+    if not ok.any():
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    seg, inv, counts = np.unique(ids[ok], return_inverse=True, return_counts=True)
+    pos = np.column_stack([np.bincount(inv, moved[ok, k]) for k in (0, 1)]) / counts[:, None]
+    res = ref_xy[j[ok]] - moved[ok, :2]
+    err = np.column_stack([np.bincount(inv, res[:, k]) for k in (0, 1)]) / counts[:, None]
+    keep = counts >= min_points
+    return pos[keep], err[keep]
+
+
+def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose, sd, *,
+                match_m: float = 0.105, min_points: int = 5, min_segments: int = 4,
+                trim_sigmas: float = 3.0, sd_scale: float = 1.2, max_sigmas: float = 3.0,
+                iterations: int = 5) -> Polish:
+    """Polish ``pose`` (dx, dy, dz, dheading_deg of the scan in the reference's frame) on the
+    two sub-maps' cylinder points (module docstring); ``sd`` are its branch-and-bound sigmas."""
+    pose = np.asarray(pose, dtype=np.float64).copy()
+    sd = np.asarray(sd, dtype=np.float64)
+    start = pose.copy()
+
+    def cylinders(df: pd.DataFrame) -> pd.DataFrame:
+        return df[df["feature"] == "cylinder"] if "feature" in df else df
+
+    a, b = cylinders(scan_submap), cylinders(reference_submap)
+    if len(a) == 0 or len(b) == 0:
+        return Polish(start, np.nan, 0, "no cylinder points")
+    pts = a[["x", "y", "z"]].to_numpy(np.float64)
+    ids = a["feature_id"].to_numpy() if "feature_id" in a else np.zeros(len(a), np.int64)
+    ref = b[["x", "y", "z"]].to_numpy(np.float64)
+    tree = cKDTree(ref)
+    n, cov = 0, None
+    for _ in range(iterations):
+        q, e = _segment_residuals(_moved(pts, pose), ids, tree, ref[:, :2], match_m, min_points)
+        keep = np.ones(len(q), bool)
+        for _trim in range(2):
+            n = int(keep.sum())
+            if n < min_segments:
+                return Polish(start, np.nan, n, f"only {n} stem segments pair")
+            c = q[keep].mean(axis=0)
+            v = q[keep] - c
+            A = np.zeros((2 * n, 3))
+            A[0::2, 0], A[1::2, 1] = 1.0, 1.0
+            A[0::2, 2], A[1::2, 2] = -v[:, 1], v[:, 0]
+            y = e[keep].reshape(-1)
+            normal = A.T @ A
+            sol = np.linalg.solve(normal, A.T @ y)
+            r = (y - A @ sol).reshape(-1, 2)
+            s2 = float((r * r).sum()) / max(2 * n - 3, 1)
+            cov = s2 * np.linalg.inv(normal)
+            far = np.hypot(*r.T) > trim_sigmas * max(np.sqrt(2.0 * s2), 1e-4)  # a 2-D residual's RMS
+            if not far.any():
+                break
+            keep[np.flatnonzero(keep)[far]] = False
+        w, shift = float(sol[2]), sol[:2]
+        cw, sw = np.cos(w), np.sin(w)
+        rot = np.array([[cw, -sw], [sw, cw]])
+        pose[:2] = rot @ (pose[:2] - c) + c + shift
+        pose[3] = pose[3] + np.degrees(w)
+        if abs(w) < 1e-7 and np.all(np.abs(shift) < 1e-6):
+            break
+    sd_h = sd_scale * float(np.degrees(np.sqrt(cov[2, 2])))
+    moved = np.abs(np.r_[pose[:2] - start[:2], pose[3] - start[3]])
+    limit = max_sigmas * np.r_[sd[0], sd[1], sd[3]]
+    if np.any(~np.isfinite(limit)) or np.any(moved > limit):
+        return Polish(start, np.nan, n, "the polish would move the pose by more than "
+                      f"{max_sigmas:g} branch-and-bound sigmas")
+    pose[3] = (pose[3] + 180.0) % 360.0 - 180.0
+    return Polish(pose, sd_h, n)
