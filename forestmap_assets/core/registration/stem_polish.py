@@ -14,14 +14,15 @@ segments' centroid ``c`` and a shift ``t`` are fitted by least squares,
     e_k = t + w (-(q_k - c)_y, (q_k - c)_x),
 
 re-paired and fitted again until the rotation is below 1e-7 rad; segments farther from the fit
-than ``trim_sigmas`` times their RMS residual are left out. The heading sigma is ``sd_scale`` (1.2) times
-the fit's own (residual variance times the inverse normal matrix), which is what the stems'
-scatter allows. Measured on the branch-and-bound links of 9 surveys (Sylva 1-5, own simulator 1-2 at
-full resolution, rendered 1-2; benchmarks/results.md "stem_polish"): heading error RMS Sylva
-0.005-0.013 -> 0.0015-0.006 deg, rendered 0.007 / 0.004 -> 0.002 / 0.001 deg, own 0.017 / 0.011
--> 0.009 / 0.015 deg; error / the fit's own sd 0.37-1.43 (pooled 0.94). The fitted shift is applied
-too, but the sub-maps' axes share biases that their scatter does not show (the same fit's x, y
-sigma was 1.4-5.4 times too small), so the x, y, z sigmas stay the branch and bound's.
+than ``trim_sigmas`` times their RMS residual are left out. The heading sigma is ``sd_scale``
+(1.2) times the fit's own (residual variance times the inverse normal matrix), which is what the
+stems' scatter allows. Measured on the branch-and-bound links of 9 surveys (Sylva 1-5, own
+simulator 1-2 at full resolution, rendered 1-2; benchmarks/results.md "stem_polish"): heading
+error RMS Sylva 0.005-0.013 -> 0.0015-0.006 deg, rendered 0.007 / 0.004 -> 0.002 / 0.001 deg,
+own 0.017 / 0.011 -> 0.009 / 0.015 deg; error / the fit's own sd 0.37-1.43 (pooled 0.94). The
+fitted shift is applied too, but the sub-maps' axes share biases that their scatter does not
+show (the same fit's x, y sigma was 1.4-5.4 times too small), so the x, y, z sigmas stay the
+branch and bound's.
 
 The polish is not used (the pose stays) when fewer than ``min_segments`` segments pair, or when
 it would move the pose by more than ``max_sigmas`` of the branch-and-bound sigmas."""
@@ -33,6 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
+
+from forestmap_assets.core.geometry import rot_z, transform_points, wrap_deg
 
 
 @dataclass(frozen=True)
@@ -46,12 +49,6 @@ class Polish:
     reason: str = ""
 
 
-def _moved(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    h = np.radians(pose[3])
-    c, s = np.cos(h), np.sin(h)
-    return points @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) + pose[:3]
-
-
 def _segment_residuals(moved: np.ndarray, ids: np.ndarray, tree: cKDTree, ref_xy: np.ndarray,
                        match_m: float, min_points: int) -> tuple[np.ndarray, np.ndarray]:
     """Mean position (n, 2) and mean horizontal residual (n, 2) of each segment with at least
@@ -60,7 +57,7 @@ def _segment_residuals(moved: np.ndarray, ids: np.ndarray, tree: cKDTree, ref_xy
     ok = np.isfinite(d)
     if not ok.any():
         return np.zeros((0, 2)), np.zeros((0, 2))
-    seg, inv, counts = np.unique(ids[ok], return_inverse=True, return_counts=True)
+    _, inv, counts = np.unique(ids[ok], return_inverse=True, return_counts=True)
     pos = np.column_stack([np.bincount(inv, moved[ok, k]) for k in (0, 1)]) / counts[:, None]
     res = ref_xy[j[ok]] - moved[ok, :2]
     err = np.column_stack([np.bincount(inv, res[:, k]) for k in (0, 1)]) / counts[:, None]
@@ -90,7 +87,7 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
     tree = cKDTree(ref)
     n, cov = 0, None
     for _ in range(iterations):
-        q, e = _segment_residuals(_moved(pts, pose), ids, tree, ref[:, :2], match_m, min_points)
+        q, e = _segment_residuals(transform_points(pts, pose), ids, tree, ref[:, :2], match_m, min_points)
         keep = np.ones(len(q), bool)
         for _trim in range(2):
             n = int(keep.sum())
@@ -112,9 +109,7 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
                 break
             keep[np.flatnonzero(keep)[far]] = False
         w, shift = float(sol[2]), sol[:2]
-        cw, sw = np.cos(w), np.sin(w)
-        rot = np.array([[cw, -sw], [sw, cw]])
-        pose[:2] = rot @ (pose[:2] - c) + c + shift
+        pose[:2] = rot_z(np.degrees(w))[:2, :2] @ (pose[:2] - c) + c + shift
         pose[3] = pose[3] + np.degrees(w)
         if abs(w) < 1e-7 and np.all(np.abs(shift) < 1e-6):
             break
@@ -124,5 +119,5 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
     if np.any(~np.isfinite(limit)) or np.any(moved > limit):
         return Polish(start, np.nan, n, "the polish would move the pose by more than "
                       f"{max_sigmas:g} branch-and-bound sigmas")
-    pose[3] = (pose[3] + 180.0) % 360.0 - 180.0
+    pose[3] = wrap_deg(pose[3])
     return Polish(pose, sd_h, n)
