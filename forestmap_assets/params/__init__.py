@@ -89,6 +89,9 @@ class CircleParams(_Stage):
     stable_gain: float = 0.15
     engine: Literal["auto", "numpy", "numba"] = "auto"
     max_batch_points: int = 2_000_000
+    # (inferred) points a circle fit takes at most: a segment whose neighbours hold more takes
+    # every k-th of them (0 = all, the thesis)
+    max_fit_points: int = 0
 
 
 class CylinderParams(_Stage):
@@ -358,7 +361,10 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # (inferred) as indoor: with 2.5 cm range noise the linear fit's mean signed residual is
         # biased by -sigma^2/(2r), which rejects thin trunks beyond ~10 m under the 4.1 mm test
         # (benchmarks/results.md, feature extraction: 93.6 % -> 97.4 % of stems found)
-        "circles": {"symmetry_statistic": "noise_corrected"},
+        # (inferred) a circle fit takes at most 256 points (every k-th point of each neighbour
+        # segment): circle models on scans rendered inside a registered cloud 7.2 / 4.7 -> 4.9 /
+        # 3.7 s a scan, the same poses and DBH (benchmarks/results.md "fit_points")
+        "circles": {"symmetry_statistic": "noise_corrected", "max_fit_points": 256},
         # (inferred) links sharing a scan share its feature errors: measured correlation on
         # simulated forests (benchmarks/results.md "Whole pipeline"): branch-and-bound links at
         # quarter resolution, refined links (fitted on the raw points) at half resolution

@@ -352,10 +352,14 @@ if HAVE_NUMBA:
         max_rounds,
         min_points,
         gn_iterations,
+        max_points,
     ):  # pragma: no cover - compiled
         """Gather (height filter along n), project and fit the circle of every segment in
         ``circ``; mirrors the gathering of :func:`_circle_phase`. Segments in parallel (each
-        writes only its own row: the same results on any number of threads)."""
+        writes only its own row: the same results on any number of threads). With
+        ``max_points`` > 0 a segment whose neighbours hold more points takes every
+        ``ceil(points / max_points)``-th point of each neighbour, starting one point later on
+        each next neighbour (the whole arc, not the same columns of every scan line)."""
         g = circ.size
         res = np.full((g, 8), np.nan)
         oks = np.zeros(g, dtype=np.bool_)
@@ -366,13 +370,17 @@ if HAVE_NUMBA:
             for j in range(pair_ptr[k], pair_ptr[k + 1]):
                 t = pair_t[j]
                 cap += pptr[t + 1] - pptr[t]
+            stride = 1
+            if max_points > 0 and cap > max_points:
+                stride = (cap + max_points - 1) // max_points
             xs = np.empty(cap)
             zs = np.empty(cap)
             hs = np.empty(cap)
             m = 0
             for j in range(pair_ptr[k], pair_ptr[k + 1]):
                 t = pair_t[j]
-                for i in range(pptr[t], pptr[t + 1]):
+                first = pptr[t] + (stride - (j - pair_ptr[k]) % stride) % stride
+                for i in range(first, pptr[t + 1], stride):
                     hh = px[i] * nrm[s, 0] + py[i] * nrm[s, 1] + pz[i] * nrm[s, 2]
                     if abs(hh - hbar[s]) <= height:
                         xs[m] = px[i] * e1[s, 0] + py[i] * e1[s, 1] + pz[i] * e1[s, 2]

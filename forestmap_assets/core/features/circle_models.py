@@ -88,8 +88,13 @@ def _circle_phase(
     min_points: int,
     max_batch_points: int,
     engine: str,
+    max_fit_points: int = 0,
 ) -> dict[str, np.ndarray]:
-    """Fit the circles of segments ``todo`` with axes ``normals``; per-segment result arrays."""
+    """Fit the circles of segments ``todo`` with axes ``normals``; per-segment result arrays.
+    ``max_fit_points`` > 0: a segment whose neighbours hold more points takes every
+    ``ceil(points / max_fit_points)``-th point of each neighbour segment, one point later on
+    each next neighbour, before the height filter (both engines): the whole arc stays sampled
+    (the same columns of every scan line would shorten it and bias the linear fit)."""
     n_seg = sd.row.size
     res = {k: np.full(n_seg, np.nan) for k in ("cx", "cy", "cz", "r", "me", "rms", "md", "dc")}
     res["n_points"] = np.zeros(n_seg, np.int64)
@@ -134,6 +139,7 @@ def _circle_phase(
             int(max_rounds),
             int(min_points),
             6,
+            int(max_fit_points),
         )
         _store(
             res,
@@ -170,6 +176,11 @@ def _circle_phase(
         g = np.repeat(s, cnt)
         first = np.concatenate([[0], np.cumsum(cnt)[:-1]])
         pidx = np.repeat(sd.pptr[t], cnt) + (np.arange(g.size) - np.repeat(first, cnt))
+        if max_fit_points > 0:  # every stride-th point of each neighbour, staggered (as the kernel)
+            stride = np.maximum(1, -(-per_seg // max_fit_points))[g]
+            nth = np.repeat(np.arange(s.size) - np.searchsorted(s, s), cnt)
+            keep = (pidx - np.repeat(sd.pptr[t], cnt) + nth) % stride == 0
+            g, pidx = g[keep], pidx[keep]
         p = sd.pts[pidx]
         nn = normals[g]
         h = np.einsum("ij,ij->i", p, nn)
@@ -339,6 +350,7 @@ def fit_circle_models(
         min_points=min_points,
         max_batch_points=max_batch_points,
         engine=resolve_engine(engine),
+        max_fit_points=cp.max_fit_points,
     )
     normals = np.tile([0.0, 0.0, 1.0], (n_seg, 1))
     todo = np.ones(n_seg, bool)
