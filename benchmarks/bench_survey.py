@@ -19,7 +19,8 @@ the branch-and-bound pose, and why) with the pair errors along and across the ba
 where each run spends its time (forestmap's stage lines, Sylva's progress lines).
 
 Options: ``--seeds N|a,b`` Sylva surveys (default 3), ``--own-seeds`` own-simulator surveys
-(default 1, 0 for none), ``--render-seeds`` rendered surveys (default 1), ``--scans`` (6), ``--skip-peer`` (no Sylva: own simulator and forestmap
+(default 1, 0 for none), ``--real-seeds`` own surveys with realistic stems (default 0),
+``--render-seeds`` rendered surveys (default 1), ``--scans`` (6), ``--skip-peer`` (no Sylva: own simulator and forestmap
 only; also what happens, with the error in the section, when Sylva cannot be installed or
 imported), ``--cache DIR`` (keep campaigns, logs and stores; simulated campaigns are reused),
 ``--report-only`` (rebuild the tables from ``--cache``), ``--no-write``.
@@ -374,12 +375,13 @@ def make_campaign(kind: str, seed: int, args, cache: Path, peer_py: Path | None)
         facts = {"points": [ply_vertices(p) for p in sorted((root / "scans").glob("*.ply"))],
                  "source": "forestmap sim/cloud_render.py (realistic stems, 9 source scans)"}
     else:
+        stems = ["--stems", "realistic"] if kind == "ownreal" else []
         m = run_measured([forestmap_exe(), "simulate", root, "--scans", args.scans, "--resolution",
-                          "full", "--no-prior", "--format", "ply", "--seed", seed], log, echo=False)
+                          "full", "--no-prior", "--format", "ply", "--seed", seed, *stems], log, echo=False)
         if m["rc"]:
             raise SystemExit(f"forestmap simulate failed: {last_error(m['lines'])} (log {log})")
         facts = {"points": [ply_vertices(p) for p in sorted((root / "scans").glob("*.ply"))],
-                 "source": "forestmap simulate --resolution full"}
+                 "source": "forestmap simulate --resolution full " + " ".join(stems)}
     facts.update(kind=kind, seed=seed, root=str(root), simulate_wall_s=m["wall_s"],
                  scans=scan_list(root))
     stamp.write_text(json.dumps(facts))
@@ -657,7 +659,7 @@ def _ratio(a, b):
 
 
 def case_name(c: dict) -> str:
-    label = {"sylva": "Sylva sim", "render": "rendered"}.get(c["kind"], "own sim")
+    label = {"sylva": "Sylva sim", "render": "rendered", "ownreal": "own realistic"}.get(c["kind"], "own sim")
     return f"{label} {c['seed']}"
 
 
@@ -884,6 +886,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="3", help="Sylva surveys: N (seeds 1..N) or a list 4,7 (default 3)")
     ap.add_argument("--own-seeds", default="1", help="surveys of forestmap's own simulator, same form (0: none)")
+    ap.add_argument("--real-seeds", default="0",
+                    help="own-simulator surveys with realistic stems (--stems realistic), same form (0: none)")
     ap.add_argument("--render-seeds", default="1",
                     help="surveys rendered inside the registered cloud of an own realistic forest "
                          "(sim/cloud_render.py), same form (0: none)")
@@ -907,6 +911,7 @@ def main(argv=None) -> int:
             peer_py = args.peer_python
     plan = [("sylva", s) for s in (seeds_of(args.seeds) if peer_py else [])]
     plan += [("own", s) for s in (seeds_of(args.own_seeds) if args.own_seeds != "0" else [])]
+    plan += [("ownreal", s) for s in (seeds_of(args.real_seeds) if args.real_seeds != "0" else [])]
     plan += [("render", s) for s in (seeds_of(args.render_seeds) if args.render_seeds != "0" else [])]
     cases = []
     for kind, seed in plan:
@@ -952,7 +957,8 @@ def main(argv=None) -> int:
              "`sylva.coreg.simulate.simulate_survey(n_scans, seed)` (40 m plot, 45 trees, scans within "
              "12 m of the centre, levelled, unknown heading), each cloud written as a PLY of x, y, z "
              "in its scanner's frame, `campaign.yaml` without prior or sensor step; own surveys: "
-             "`forestmap simulate OUT --scans 6 --resolution full --no-prior --format ply --seed S`. "
+             "`forestmap simulate OUT --scans 6 --resolution full --no-prior --format ply --seed S` "
+             "(own realistic: with `--stems realistic`). "
              "On each survey, Sylva's `coregister(ply_files, names=...)` (default `CoregConfig`) and "
              "`forestmap run CAMPAIGN --no-cloud` (fresh `FORESTMAP_HOME`, default in-process "
              "executor; it also builds the tree list, elevation model, next vantage points, "

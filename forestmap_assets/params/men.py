@@ -66,7 +66,9 @@ class RefineSettings:
     # (x, y, z, heading; two_way.beam_sd)
     beam_exit_m: float = 0.0
     beam_divergence_mrad: float = 0.0
-    beam_sd_share: tuple[float, float, float, float] = (0.09, 0.09, 0.035, 0.11)
+    # x, y 0.09 -> 0.164 with two_way_sd_scale's x, y 0.8 -> 0.44: a wide beam's links keep
+    # their sigmas (its widened silhouettes bias them more than their Hessian shows)
+    beam_sd_share: tuple[float, float, float, float] = (0.164, 0.164, 0.035, 0.11)
     # two-way pairs' normal: the sum of both points' normals (point_to_plane.plane_pairs); None:
     # unless the beam diverges by more than symmetric_max_divergence_mrad (the silhouettes a wide
     # first-return beam widens face their own sensor, and the sum pulled the scans apart: +2-3 mm
