@@ -88,9 +88,9 @@ class RefineSettings:
     # surveys without a wide beam (scale), then on 8 own surveys with the 3 mrad first-return
     # beam (beam_sd_share); benchmarks/results.md "link_sigmas", "sigmas". x, y 0.8 -> 0.44 once
     # the refined links had become better than that fit (symmetric pairs, stem polish): the
-    # scans' error / sd x, y pooled over Sylva 1-5 0.41 / 0.58 -> 0.69 / 1.05, own full
-    # resolution 0.77 / 0.47 -> 0.70 / 0.70; rendered unchanged (floored links, the campaign
-    # scale carries them); benchmarks/results.md "link_scale"
+    # scans' error / sd x, y pooled over Sylva 1-5 0.41 / 0.58 -> 0.69 / 1.05; rendered
+    # unchanged (floored links, the campaign scale carries them); wide-beam campaigns keep their
+    # sigmas through beam_sd_share; benchmarks/results.md "link_scale"
     two_way_sd_scale: tuple[float, float, float, float] = (0.44, 0.44, 0.96, 0.56)
     # the floor: z 0.8 mm and heading 0.005 deg (were 0.5 mm, 0.003 deg), where the links of
     # scans rendered inside a registered cloud were 2.3 and 1.6 times their floored sd
