@@ -180,8 +180,9 @@ def test_engines_agree():
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_max_fit_points_thins_the_gathered_points(engine):
-    """``max_fit_points`` caps the points of a fit (every k-th gathered point); both engines
-    thin the same way and, at 5 mm range noise, the stem's circles stay within millimetres."""
+    """``max_fit_points`` caps the points of a fit (every k-th point of each neighbour segment,
+    staggered); both engines thin the same way and, at 5 mm range noise, the stem's circles stay
+    within millimetres."""
     img, _ = _stem_image(lean_deg=12.0, noise=0.005, seed=5)
     seg = segment_scan_lines(img)
     full = final_circles(fit_circle_models(img, seg, engine=engine))

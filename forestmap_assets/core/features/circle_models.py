@@ -175,11 +175,12 @@ def _circle_phase(
         s, t, cnt = ps[pa:pb], pt[pa:pb], pair_n[pa:pb]
         g = np.repeat(s, cnt)
         first = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-        pidx = np.repeat(sd.pptr[t], cnt) + (np.arange(g.size) - np.repeat(first, cnt))
+        within = np.arange(g.size) - np.repeat(first, cnt)  # position in its neighbour segment
+        pidx = np.repeat(sd.pptr[t], cnt) + within
         if max_fit_points > 0:  # every stride-th point of each neighbour, staggered (as the kernel)
             stride = np.maximum(1, -(-per_seg // max_fit_points))[g]
-            nth = np.repeat(np.arange(s.size) - np.searchsorted(s, s), cnt)
-            keep = (pidx - np.repeat(sd.pptr[t], cnt) + nth) % stride == 0
+            nth = np.repeat(np.arange(s.size) - np.searchsorted(s, s), cnt)  # neighbour's rank
+            keep = (within + nth) % stride == 0
             g, pidx = g[keep], pidx[keep]
         p = sd.pts[pidx]
         nn = normals[g]
