@@ -17,10 +17,12 @@ from dagster._core.definitions.data_version import (
     StaleStatus,
 )
 from dagster._time import get_current_datetime
+from dagster._utils.caching_instance_queryer import CachingInstanceQueryer
 
 from forestmap_assets.assets.common import PIPELINE, asset_key, pair_partitions, split_pair_key
 from forestmap_assets.assets.pairs import PAIR_LISTS, PAIR_SCAN_INPUTS
 from forestmap_assets.io.campaign import Campaign
+from forestmap_assets.orchestration.record_index import IndexedRecords
 from forestmap_assets.orchestration.workspace import build_definitions
 
 
@@ -86,14 +88,25 @@ def _resolver(defs: Definitions, instance: DagsterInstance) -> CachingStaleStatu
     return resolver_for_graph(defs.resolve_asset_graph(), instance)
 
 
-def resolver_for_graph(graph, instance: DagsterInstance) -> CachingStaleStatusResolver:
-    """Dagster's stale-status resolver on an asset graph (as the UI computes staleness)."""
+def indexed_records(defs: Definitions, campaign: Campaign, instance: DagsterInstance) -> IndexedRecords:
+    """The instance with every record of the campaign's assets read in bulk (:class:`.IndexedRecords`)."""
+    graph = defs.resolve_asset_graph()
+    return IndexedRecords(instance, [k for k in graph.get_all_asset_keys() if k.path[0] == campaign.key])
+
+
+def resolver_for_graph(graph, instance: DagsterInstance, records: IndexedRecords | None = None
+                       ) -> CachingStaleStatusResolver:
+    """Dagster's stale-status resolver on an asset graph (as the UI computes staleness); with
+    ``records``, it reads the event log from them (:class:`.IndexedRecords`)."""
     view = AssetGraphView(
         temporal_context=TemporalContext(effective_dt=get_current_datetime(), last_event_id=None),
         instance=instance,
         asset_graph=graph,
     )
-    return CachingStaleStatusResolver(instance=instance, asset_graph=graph, loading_context=view)
+    if records is None:
+        return CachingStaleStatusResolver(instance=instance, asset_graph=graph, loading_context=view)
+    return CachingStaleStatusResolver(instance=records, asset_graph=graph, loading_context=view,
+                                      instance_queryer=CachingInstanceQueryer(records, graph, view))
 
 
 def changed_scan_files(
@@ -158,7 +171,8 @@ def direct_states(
     (a cause of its own: new code version, or an input with a new data version) or ``fresh``;
     ``check_files`` also hashes the scan files (a changed, not yet observed file: stale).
     ``only``: just these stages (the runner's later waves, whose scans are done)."""
-    resolver = _resolver(defs, instance)
+    records = indexed_records(defs, campaign, instance)
+    resolver = resolver_for_graph(defs.resolve_asset_graph(), instance, records)
     stages = [(s, g) for s, g in campaign_stages(defs, campaign) if only is None or s in only]
     resolver.instance_queryer.prefetch_asset_records([asset_key(campaign, s) for s, _ in stages])
     out: dict[tuple[str, str | None], str] = {}
@@ -170,13 +184,13 @@ def direct_states(
             out[(stage, part)] = {StaleStatus.MISSING: "missing", StaleStatus.STALE: "stale"}.get(
                 status, "fresh"
             )
-    _many_pairs(defs, campaign, instance, stages, parts["pair"], out)
-    changed = changed_scan_files(campaign, instance, resolver) if check_files else {}
+    _many_pairs(defs, campaign, records, stages, parts["pair"], out)
+    changed = changed_scan_files(campaign, records, resolver) if check_files else {}
     for sid in changed:  # a changed file not yet observed: its range image is stale
         if out.get(("range_images", sid)) == "fresh":
             out[("range_images", sid)] = "stale"
     if check_files and parts["pair"]:  # a pair whose inputs changed since they were observed
-        for pair in changed_pair_inputs(campaign, instance, store_url):
+        for pair in changed_pair_inputs(campaign, records, store_url):
             for stage, g in stages:
                 if g == "pair" and out.get((stage, pair)) == "fresh":
                     out[(stage, pair)] = "stale"
