@@ -217,7 +217,8 @@ def test_gather_slices_keeps_the_band_and_the_gate():
 
 def test_slice_clouds_keep_what_the_slices_use():
     """The tree list's clouds (:func:`slice_clouds`): only the points in the slices' height
-    band, from Arrow tables of x, y, z; the same DBH fits as from the whole clouds."""
+    band near a stem (its 0.5 m cells), from Arrow tables of x, y, z; the same DBH fits as from
+    the whole clouds."""
     import pyarrow as pa
 
     from forestmap_assets.core.mapping.stem_slices import slice_clouds
@@ -238,6 +239,11 @@ def test_slice_clouds_keep_what_the_slices_use():
         z = xyz[:, 2].astype(np.float64) + poses.set_index("scan").at[sid, "z"]
         assert 0 < len(xyz) < 0.5 * len(clouds[sid])
         assert ((z >= ground + 1.3 - tp.slice_half_height_m) & (z <= ground + 1.3 + tp.slice_half_height_m)).all()
+        pose = poses.set_index("scan").loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
+        xy = transform_points(xyz.astype(np.float64), pose)[:, :2]
+        gap = np.hypot(*(xy[:, None, :] - trees[["x", "y"]].to_numpy()[None]).transpose(2, 0, 1))
+        reach = tp.slice_gate_factor * trees["dbh_m"].to_numpy() / 2 + tp.slice_gate_margin_m + 0.03
+        assert (gap - reach).min(axis=1).max() <= 0.5 * np.sqrt(2) + 1e-9  # within a cell of a gate
     whole = merged_slice_dbh(trees, cyl, np.array([1, 2]), clouds, poses, tp)
     band = merged_slice_dbh(trees, cyl, np.array([1, 2]), kept, poses, tp)
     for a, b in zip(whole, band, strict=True):

@@ -66,8 +66,11 @@ class SliceFit:
     sd_m: float = float("nan")
 
 
+MAX_SLOPE = 0.3  # lean (dx/dz) of a stem's axis at most
+
+
 def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
-                z_max: np.ndarray | None = None, max_slope: float = 0.3) -> np.ndarray:
+                z_max: np.ndarray | None = None, max_slope: float = MAX_SLOPE) -> np.ndarray:
     """Lean (dx/dz, dy/dz) of each tree (1-based ``tree_of_cyl``), the ``n_circles``-weighted
     mean of its cylinders' axes (only those starting below ``z_max`` of their tree when given),
     clipped to ``max_slope``; zero for a tree without such a cylinder."""
@@ -93,6 +96,43 @@ def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
 def _in_band(z: np.ndarray, zbh: np.ndarray, half_height_m: float) -> np.ndarray:
     """Global heights ``z`` within ``half_height_m`` of any breast height ``zbh`` range."""
     return (z >= zbh.min() - half_height_m) & (z <= zbh.max() + half_height_m)
+
+
+class _StemCells:
+    """A 2-D grid of ``cell_m`` cells over the stems: each cell near a stem (within its reach
+    ``reach`` of the axis ``centre``) holds the height band ``zbh`` +- ``half_height_m`` of the
+    stems near it, so a point far from every slice is dropped by one lookup before the k-d tree
+    (a point that a stem's slice keeps always lies in a cell that stem marked)."""
+
+    def __init__(self, centre: np.ndarray, zbh: np.ndarray, reach: np.ndarray, half_height_m: float,
+                 cell_m: float = 0.5):
+        self.cell = cell_m
+        self.lo = centre.min(axis=0) - reach.max() - cell_m
+        self.shape = np.floor((centre.max(axis=0) + reach.max() + cell_m - self.lo) / cell_m).astype(int) + 1
+        span = np.arange(-int(np.ceil(reach.max() / cell_m)) - 1, int(np.ceil(reach.max() / cell_m)) + 2)
+        ox, oy = (a.ravel() for a in np.meshgrid(span, span, indexing="ij"))
+        home = np.floor((centre - self.lo) / cell_m).astype(int)
+        ix, iy = home[:, :1] + ox, home[:, 1:] + oy  # (stems, offsets)
+        dist = np.hypot(self.lo[0] + (ix + 0.5) * cell_m - centre[:, :1], self.lo[1] + (iy + 0.5) * cell_m - centre[:, 1:])
+        ok = (dist <= reach[:, None] + cell_m * 0.7072) & (ix >= 0) & (iy >= 0) & (ix < self.shape[0]) & (iy < self.shape[1])
+        z = np.broadcast_to(zbh[:, None], ix.shape)[ok]
+        self.z_lo = np.full(tuple(self.shape), np.inf)
+        self.z_hi = np.full(tuple(self.shape), -np.inf)
+        np.minimum.at(self.z_lo, (ix[ok], iy[ok]), z - half_height_m)
+        np.maximum.at(self.z_hi, (ix[ok], iy[ok]), z + half_height_m)
+
+    def near(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Indices of the points (``x, y, z``, any float dtype) that lie in a marked cell within
+        its height band."""
+        z_lo, z_hi = self.z_lo.ravel(), self.z_hi.ravel()
+        idx = np.flatnonzero((z >= z_lo.min()) & (z <= z_hi.max()))
+        fx = (x[idx] - self.lo[0]) / self.cell
+        fy = (y[idx] - self.lo[1]) / self.cell
+        inside = (fx >= 0) & (fy >= 0) & (fx < self.shape[0]) & (fy < self.shape[1])
+        idx, fx, fy = idx[inside], fx[inside], fy[inside]
+        cell = fx.astype(np.int64) * self.shape[1] + fy.astype(np.int64)
+        zi = z[idx]
+        return idx[(zi >= z_lo[cell]) & (zi <= z_hi[cell])]
 
 
 def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame, *,
@@ -287,20 +327,30 @@ def slice_dbhs(trees: pd.DataFrame, slices: pd.DataFrame, sensors: np.ndarray, *
 def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.DataFrame, tp,
                  breast_height_m: float = 1.3) -> dict[str, np.ndarray]:
     """The levelled points (n, 3) of each placed scan's table (columns ``x, y, z``, scanner
-    frame) that lie in the height band of any breast-height slice of ``trees``, the same test
-    as :func:`gather_slices` makes (so its slices do not change), before the points are
-    stacked: a scan's full cloud is several times larger than the band."""
+    frame) that may lie in a breast-height slice of ``trees``: within the slice's height band
+    and gate (:func:`gather_slices`, any lean up to ``MAX_SLOPE``) of a stem, found with the
+    stems' cells (:class:`_StemCells`) in the scan's own frame, so that :func:`gather_slices`
+    keeps the same points: a scan's full cloud is several times larger than the slices."""
     zbh = trees["z"].to_numpy(float) + breast_height_m
     if not len(zbh):
         return {}
-    pose_z = dict(zip(poses["scan"].astype(str), poses["z"].to_numpy(float), strict=True))
+    half = tp.slice_half_height_m
+    centre = trees[["x", "y"]].to_numpy(float)
+    radius = np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
+    reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m + MAX_SLOPE * half
+    placed = poses.assign(scan=poses["scan"].astype(str)).set_index("scan")
     out = {}
     for sid, tbl in tables.items():
-        if sid not in pose_z:
+        if sid not in placed.index:
             continue
-        z = np.asarray(tbl.column("z").to_numpy(), np.float64) + pose_z[sid]
-        near = np.flatnonzero(_in_band(z, zbh, tp.slice_half_height_m))
-        out[sid] = np.column_stack([tbl.column(c).to_numpy()[near] for c in "xyz"])
+        x, y, z, h = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
+        c, s = np.cos(np.radians(h)), np.sin(np.radians(h))
+        d = centre - (x, y)  # the stems in the scan's frame: R_z(-heading) (p - t)
+        cells = _StemCells(np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]]), zbh - z,
+                           reach, half)
+        cols = [tbl.column(a).to_numpy() for a in "xyz"]
+        near = cells.near(*cols)
+        out[sid] = np.column_stack([a[near] for a in cols])
     return out
 
 
