@@ -300,25 +300,28 @@ def _span(tubes, ground, placed) -> float:
 def _add_scans(
     p, placed: pd.DataFrame, length_m: float, reference: str | None, labels: bool
 ) -> None:
-    """Scan frames: arrows along the scan's x (red), y (green) and z (blue) axes."""
+    """Scan frames: arrows along the scan's x (red), y (green) and z (blue) axes, one glyph mesh
+    per axis over every scan (a mesh per arrow took 4 s for 51 scans)."""
     import pyvista as pv
 
-    for r in placed.itertuples(index=False):
-        size = 2 * length_m if str(r.scan) == reference else length_m
-        h = np.radians(float(r.heading_deg))
-        rot = np.array([[np.cos(h), -np.sin(h), 0.0], [np.sin(h), np.cos(h), 0.0], [0.0, 0.0, 1.0]])
-        origin = np.array([r.x, r.y, r.z], dtype=float)
-        for direction, colour in SCAN_AXES:
-            arrow = pv.Arrow(
-                start=origin,
-                direction=rot @ np.asarray(direction),
-                scale=size,
-                tip_length=0.3,
-                tip_radius=0.12,
-                shaft_radius=0.045,
-            )
-            p.add_mesh(arrow, color=colour)
-        p.add_mesh(pv.Sphere(radius=0.12 * size, center=origin), color="black")
+    if not len(placed):
+        return
+    origins = placed[["x", "y", "z"]].to_numpy(float)
+    size = np.where(placed["scan"].astype(str).to_numpy() == str(reference), 2 * length_m, length_m)
+    h = np.radians(placed["heading_deg"].to_numpy(float))
+    c, s = np.cos(h), np.sin(h)
+    zero, one = np.zeros_like(h), np.ones_like(h)
+    axes = {(1.0, 0.0, 0.0): np.column_stack([c, s, zero]), (0.0, 1.0, 0.0): np.column_stack([-s, c, zero]),
+            (0.0, 0.0, 1.0): np.column_stack([zero, zero, one])}  # R_z(heading) of each axis
+    arrow = pv.Arrow(tip_length=0.3, tip_radius=0.12, shaft_radius=0.045)  # unit length along x
+    for direction, colour in SCAN_AXES:
+        frame = pv.PolyData(origins)
+        frame["direction"] = axes[direction]
+        frame["size"] = size
+        p.add_mesh(frame.glyph(orient="direction", scale="size", factor=1.0, geom=arrow), color=colour)
+    centres = pv.PolyData(origins)
+    centres["size"] = size
+    p.add_mesh(centres.glyph(orient=False, scale="size", factor=1.0, geom=pv.Sphere(radius=0.12)), color="black")
     if labels and len(placed):
         pts = placed[["x", "y", "z"]].to_numpy(float) + np.array([0.0, 0.0, 1.3 * length_m])
         p.add_point_labels(
