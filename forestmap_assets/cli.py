@@ -245,6 +245,7 @@ def cmd_run(args) -> int:
     progress = Progress(quiet=args.quiet)
     options = {"cloud": None if args.no_cloud else args.cloud_spacing, "report": not args.no_report}
     early: list[Path] = []  # the map's files, written before the where-to-scan-next stages end
+    loaded: dict = {}  # the assets those files read, for the report after them
 
     def map_ready(summary) -> None:
         if summary.not_built or _level_failure(summary):
@@ -253,7 +254,8 @@ def cmd_run(args) -> int:
 
         out = args.out or summary.campaign.root / "outputs"
         early.extend(write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
-                                   picture=not args.no_report, progress=progress, map_only=True))
+                                   picture=not args.no_report, progress=progress, map_only=True,
+                                   stored=loaded))
         _say(args, f"map written to {out}: {', '.join(p.name for p in early)}"
              + ("; where to scan next follows" if options["report"] else ""))
 
@@ -296,7 +298,8 @@ def cmd_run(args) -> int:
         else:  # the map's files are written: the report is what is left
             from forestmap_assets.outputs.report import write_report
 
-            written = early if args.no_report else [*early, write_report(summary.campaign, out, timings=timings)]
+            written = early if args.no_report else [
+                *early, write_report(summary.campaign, out, timings=timings, stored=loaded)]
         write_exports_stamp(out, key, written)
         print(f"outputs written to {out}: {', '.join(p.name for p in written)}")
     if summary.check_failures:

@@ -168,8 +168,13 @@ def write_exports(
     progress=None,
     timings: pd.DataFrame | None = None,
     map_only: bool = False,
+    stored: dict | None = None,
 ) -> list[Path]:
     """Write every export that the stored assets allow; return the paths.
+
+    ``stored``: a dict that keeps the assets read (by name) and is read from where it has them,
+    so that a report written later (:func:`~forestmap_assets.outputs.report.write_report`)
+    need not read them again.
 
     ``map_only``: all but report.html (the map's files, written before the where-to-scan-next
     stages end, issue 16; :func:`~forestmap_assets.outputs.report.write_report` follows).
@@ -187,15 +192,14 @@ def write_exports(
     prog = as_progress(progress)
     out = Path(out)
     written: list[Path] = []
-    omap = load_asset("optimal_map", campaign=campaign)
+    stored = {} if stored is None else stored  # read once, for the report too
+    for name in ("optimal_map", "refined_registrations", "residual_checks", "tree_list", "integrated_map"):
+        if name not in stored:
+            stored[name] = load_asset(name, campaign=campaign)
+    omap, refined = stored["optimal_map"], stored["refined_registrations"]  # the links that fed the map
     poses = omap["poses"]
-    refined = load_asset("refined_registrations", campaign=campaign)  # what fed the map
     regs = refined.get("registrations", pd.DataFrame(columns=REGISTRATION_COLUMNS))  # none: 1 scan
-    residuals = load_asset("residual_checks", campaign=campaign)
-    trees = load_asset("tree_list", campaign=campaign)
-    integrated = load_asset("integrated_map", campaign=campaign)
-    stored = {"optimal_map": omap, "refined_registrations": refined, "residual_checks": residuals,
-              "tree_list": trees, "integrated_map": integrated}  # read once, for the report too
+    residuals, trees, integrated = stored["residual_checks"], stored["tree_list"], stored["integrated_map"]
     cylinders = integrated["cylinders"].reindex(columns=CYLINDER_COLUMNS)
     grid = elevation_from_table(integrated["elevation"])
     reference = campaign.scan_ids[0]
