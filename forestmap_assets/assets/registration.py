@@ -296,9 +296,9 @@ def registration_assets(campaign: Campaign) -> list:
         key=key("retry_pairs"),
         ins={"candidate_pairs": AssetIn(key=key("candidate_pairs")),
              "pairwise_registrations": AssetIn(key=key("pairwise_registrations"),
-                                               metadata={"allow_missing_partitions": True}),
-             "submaps": all_scans(key("submaps")),
-             "cylinder_segments": all_scans(key("cylinder_segments"))},
+                                               metadata={"allow_missing_partitions": True})},
+        deps=[key("submaps"), key("cylinder_segments")],  # read only when a scan is unplaced
+        required_resource_keys={"io_manager"},
         group_name="registration",
         code_version=code_version(campaign, "retry_pairs"),
         description="Pairs for the scans the candidate pairs left unplaced (inferred, issue 17): "
@@ -307,9 +307,10 @@ def registration_assets(campaign: Campaign) -> list:
         "searched are added as pairs with the no-prior box.",
     )
     @timed
-    def retry_pairs(context, candidate_pairs, pairwise_registrations, submaps, cylinder_segments):
+    def retry_pairs(context, candidate_pairs, pairwise_registrations):
         from forestmap_assets.core.registration.candidates import (
-            CANDIDATE_COLUMNS,
+            largest_group,
+            no_candidates,
             retry_candidates,
         )
         from forestmap_assets.core.registration.screening import stems_from_cylinders
@@ -318,16 +319,20 @@ def registration_assets(campaign: Campaign) -> list:
         regs = combine_pairs(pairwise_registrations).get("registrations", pd.DataFrame(columns=["scan", "reference", "status"]))
         primary = set(zip(candidate_pairs["scan"], candidate_pairs["reference"], strict=True))
         regs = regs[np.array([(a, b) in primary for a, b in zip(regs["scan"], regs["reference"], strict=True)], dtype=bool)]
-        submaps = submaps or {}
-        if len(submaps) > reg.screen_keep + 1:
-            extra = retry_candidates(
-                [s for s in campaign.scan_ids if s in submaps], candidate_pairs, regs,
-                {sid: stems_from_cylinders((cylinder_segments or {}).get(sid)) for sid in submaps},
-                keep=reg.screen_keep, search=(reg.xy_m, reg.z_m, reg.heading_deg),
-                reach={sid: submap_reach(df) for sid, df in submaps.items()}, max_xy_m=reg.max_xy_m)
-            extra["source"] = "retry"
-        else:
-            extra = pd.DataFrame(columns=list(CANDIDATE_COLUMNS))
+        extra = no_candidates()
+        # the scans' sub-maps and cylinders are read only when a scan is left unplaced
+        if len(campaign.scan_ids) > reg.screen_keep + 1 and len(largest_group(campaign.scan_ids, regs)) < len(
+                campaign.scan_ids):
+            io = context.resources.io_manager
+            submaps = {sid: t for sid in campaign.scan_ids if (t := read_stored(io, campaign, "submaps", sid)) is not None}
+            if len(submaps) > reg.screen_keep + 1:
+                cylinders = {sid: read_stored(io, campaign, "cylinder_segments", sid) for sid in submaps}
+                extra = retry_candidates(
+                    [s for s in campaign.scan_ids if s in submaps], candidate_pairs, regs,
+                    {sid: stems_from_cylinders(cylinders[sid]) for sid in submaps},
+                    keep=reg.screen_keep, search=(reg.xy_m, reg.z_m, reg.heading_deg),
+                    reach={sid: submap_reach(df) for sid, df in submaps.items()}, max_xy_m=reg.max_xy_m)
+                extra["source"] = "retry"
         if len(extra):
             context.log.info(f"retrying {len(extra)} pairs of unplaced scans")
         meta = {"pairs": len(extra), "table": md_table(extra)}

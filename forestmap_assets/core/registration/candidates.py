@@ -163,6 +163,33 @@ def _no_prior_row(scan: str, ref: str, reach, xy_m: float, z_m: float, max_xy_m:
                 hz=z_m, hheading_deg=180.0, source="no_prior", screen_score=score)
 
 
+def no_candidates() -> pd.DataFrame:
+    """An empty candidate table (``CANDIDATE_COLUMNS`` with their dtypes)."""
+    return _table([])
+
+
+def largest_group(scan_ids, registrations: pd.DataFrame) -> list[str]:
+    """The largest group of ``scan_ids`` that the accepted ``registrations`` link (ties: the
+    one holding the earliest scan), in ``scan_ids`` order."""
+    ids = [str(s) for s in scan_ids]
+    parent = {s: s for s in ids}
+
+    def root(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    ok = registrations[registrations["status"] == "accepted"] if len(registrations) else registrations
+    for a, b in zip(ok["scan"] if len(ok) else [], ok["reference"] if len(ok) else [], strict=True):
+        if a in parent and b in parent:
+            parent[root(a)] = root(b)
+    groups: dict[str, list[str]] = {}
+    for s in ids:
+        groups.setdefault(root(s), []).append(s)
+    return max(groups.values(), key=len) if groups else []
+
+
 def retry_candidates(
     scan_ids,
     candidates: pd.DataFrame,
@@ -186,22 +213,9 @@ def retry_candidates(
     Empty when every scan is placed.
     """
     ids = [str(s) for s in scan_ids]
-    parent = {s: s for s in ids}
-
-    def root(a):
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    ok = registrations[registrations["status"] == "accepted"] if len(registrations) else registrations
-    for a, b in zip(ok["scan"] if len(ok) else [], ok["reference"] if len(ok) else [], strict=True):
-        if a in parent and b in parent:
-            parent[root(a)] = root(b)
-    groups: dict[str, list[str]] = {}
-    for s in ids:
-        groups.setdefault(root(s), []).append(s)
-    main = max(groups.values(), key=len) if groups else []
+    main = largest_group(ids, registrations)
+    if len(main) == len(ids):
+        return _table([])
     searched = {frozenset(p) for p in zip(candidates["scan"], candidates["reference"], strict=True)}
     settings = screen_settings or ScreenSettings()
     empty = np.zeros((0, 3))
