@@ -82,9 +82,17 @@ def write_table_atomic(table: pd.DataFrame | pa.Table, path: str | os.PathLike |
         raise
 
 
+SMALL_TABLE_BYTES = 1 << 20  # a table this small is read in the calling thread alone
+
+
 def read_table(path: str | os.PathLike | UPath, columns: list[str] | None = None) -> pa.Table:
-    """A stored table (``columns``: only these)."""
-    with UPath(path).open("rb") as f:
+    """A stored table (``columns``: only these); a whole one under :data:`SMALL_TABLE_BYTES`
+    is read without Arrow's thread pool (:func:`_small_or_threaded`)."""
+    path = UPath(path)
+    if columns is None and _local(path) and os.path.getsize(path.path) < SMALL_TABLE_BYTES:
+        with open(path.path, "rb") as f:
+            return pq.ParquetFile(f).read(use_threads=False)
+    with path.open("rb") as f:
         return pq.read_table(f, columns=columns)
 
 
@@ -208,9 +216,6 @@ def read_bundle(path: UPath, attempts: int = 20) -> dict[str, pd.DataFrame]:
     raise AssertionError("unreachable")
 
 
-SMALL_TABLE_BYTES = 1 << 20
-
-
 def _small_or_threaded(f) -> pd.DataFrame:
     """One Parquet file as a DataFrame; a small one (a pair's one-row tables) without Arrow's
     thread pool, whose start-up cost 3 of the 4 ms such a read took."""
@@ -316,7 +321,7 @@ class ParquetIOManager(UPathIOManager):
                 if columns is None:
                     _remember(table_path, table)
                 return table  # keep Arrow metadata (e.g. range images)
-            return table.to_pandas()
+            return table.to_pandas(use_threads=table.nbytes >= SMALL_TABLE_BYTES)
         bundle_path = self._bundle_path(path)
         for k in range(5):  # a concurrent writer swaps a bundle folder in (see _swap_in)
             if bundle_path.exists():
