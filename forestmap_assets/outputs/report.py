@@ -88,6 +88,26 @@ def _img(data: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
 
 
+PIECES = "report pieces"  # the key of the drawn pieces in a ``stored`` dict
+
+
+def _piece(stored, name: str, make):
+    """A drawn piece of the report (a figure's ``<img>``, the truth comparison) kept in
+    ``stored[PIECES]`` when ``stored`` is a dict, so that the report built again from the same
+    assets after :func:`draw_report_pieces` does not draw it twice."""
+    pieces = stored.setdefault(PIECES, {}) if isinstance(stored, dict) else {}
+    if name not in pieces:
+        pieces[name] = make()
+    return pieces[name]
+
+
+def draw_report_pieces(campaign: Campaign, out_dir: str | Path, stored: dict) -> None:
+    """Draw the report's figures and truth comparison into ``stored`` (the assets the map's
+    files read) while the where-to-scan-next stages still run (issue 16): the report written
+    after them only adds their section and the timings."""
+    build_report(campaign, out_dir, stored=stored)
+
+
 def _fig(fig, alt: str) -> str:
     from forestmap_assets.outputs.figures.common import png_bytes
 
@@ -216,7 +236,7 @@ def build_report(
     add(_card(f"{total_s:.0f} s" if np.isfinite(total_s) else "-", "processing time (stages)"))
     add("</div>")
 
-    accuracy = _truth_accuracy(campaign, out_dir)
+    accuracy = _piece(stored, "accuracy", lambda: _truth_accuracy(campaign, out_dir))
     if accuracy is not None:
         s = accuracy.summary()
         add("<h2>Against the simulator's truth</h2><div class='cards'>")
@@ -248,9 +268,9 @@ def build_report(
         add(f"<div>{_img(elev_png.read_bytes(), 'merged elevation map')}</div>")
     elif "elevation" in integrated and poses is not None:
         grid = elevation_from_table(integrated["elevation"])
-        add(f"<div>{_fig(elevation_figure(grid, poses, trees), 'merged elevation map')}</div>")
+        add(f"<div>{_piece(stored, 'elevation', lambda: _fig(elevation_figure(grid, poses, trees), 'merged elevation map'))}</div>")
     if poses is not None:
-        add(f"<div>{_fig(network_figure(poses, regs, links), 'registration network')}</div>")
+        add(f"<div>{_piece(stored, 'network', lambda: _fig(network_figure(poses, regs, links), 'registration network'))}</div>")
     add("</div>")
 
     add("<h2>Poses</h2>")
@@ -330,11 +350,8 @@ def build_report(
                 | {c: 2 for c in ("rx", "ry", "rz", "rheading")},
             )
         )
-        add(
-            _fig(
-                residual_figure(residuals, mp.residual_sigmas, mp.z_residual_sigmas), "residuals"
-            )
-        )
+        add(_piece(stored, "residuals", lambda: _fig(
+            residual_figure(residuals, mp.residual_sigmas, mp.z_residual_sigmas), "residuals")))
     else:
         add('<p class="note">(no admitted observation)</p>')
 
@@ -353,7 +370,7 @@ def build_report(
         truth_csv = campaign.root / "truth" / "trees.csv"
         if truth_csv.is_file():
             truth = pd.read_csv(truth_csv)
-        add(_fig(dbh_histogram(trees, truth), "DBH histogram"))
+        add(_piece(stored, "dbh", lambda: _fig(dbh_histogram(trees, truth), "DBH histogram")))
         add("</div><div>")
         add("<details><summary>the tree list</summary>")
         add(html_table(trees, {"dbh_m": 3, "visible_length_m": 2}))

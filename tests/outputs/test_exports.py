@@ -333,3 +333,26 @@ class _Lines:
 
     def flush(self):
         pass
+
+
+def test_report_after_the_map_reuses_its_assets_and_drawn_pieces(filled, tmp_path, monkeypatch):
+    """The run's report written after the where-to-scan-next stages (cli: map_ready) takes the
+    assets the map's files read and the figures drawn while those stages ran: no figure is
+    drawn twice and the page is the report a fresh build writes."""
+    import forestmap_assets.outputs.figures.common as common
+    from forestmap_assets.outputs.report import PIECES, draw_report_pieces, write_report
+
+    out, stored = tmp_path / "outputs", {}
+    write_exports(filled, out, cloud_spacing_m=None, map_only=True, stored=stored)
+    assert {"optimal_map", "refined_registrations", "tree_list"} <= set(stored)
+    draw_report_pieces(filled, out, stored)
+    assert {"network", "residuals", "dbh"} <= set(stored[PIECES])
+    drawn = []
+    real = common.png_bytes
+    monkeypatch.setattr(common, "png_bytes", lambda fig, **kw: drawn.append(fig) or real(fig, **kw))
+    reused = write_report(filled, out, stored=stored).read_text()
+    assert drawn == []
+    fresh = write_report(filled, out).read_text()
+    assert len(drawn) == 3  # network, residuals, DBH
+    stamp = re.compile(r"report written [^<]*")
+    assert stamp.sub("", reused) == stamp.sub("", fresh)
