@@ -321,8 +321,7 @@ def registration_assets(campaign: Campaign) -> list:
         regs = regs[np.array([(a, b) in primary for a, b in zip(regs["scan"], regs["reference"], strict=True)], dtype=bool)]
         extra = no_candidates()
         # the scans' sub-maps and cylinders are read only when a scan is left unplaced
-        if len(campaign.scan_ids) > reg.screen_keep + 1 and len(largest_group(campaign.scan_ids, regs)) < len(
-                campaign.scan_ids):
+        if len(largest_group(campaign.scan_ids, regs)) < len(campaign.scan_ids):
             io = context.resources.io_manager
             submaps = {sid: t for sid in campaign.scan_ids if (t := read_stored(io, campaign, "submaps", sid)) is not None}
             if len(submaps) > reg.screen_keep + 1:

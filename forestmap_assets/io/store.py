@@ -86,14 +86,26 @@ SMALL_TABLE_BYTES = 1 << 20  # a table this small is read in the calling thread 
 
 
 def read_table(path: str | os.PathLike | UPath, columns: list[str] | None = None) -> pa.Table:
-    """A stored table (``columns``: only these); a whole one under :data:`SMALL_TABLE_BYTES`
-    is read without Arrow's thread pool (:func:`_small_or_threaded`)."""
+    """A stored table (``columns``: only these); see :func:`_read_parquet`."""
     path = UPath(path)
-    if columns is None and _local(path) and os.path.getsize(path.path) < SMALL_TABLE_BYTES:
+    if _local(path):
         with open(path.path, "rb") as f:
-            return pq.ParquetFile(f).read(use_threads=False)
+            return _read_parquet(f, columns)
     with path.open("rb") as f:
         return pq.read_table(f, columns=columns)
+
+
+def _read_parquet(f, columns: list[str] | None = None) -> pa.Table:
+    """One local Parquet file; a whole one under :data:`SMALL_TABLE_BYTES` is read without
+    Arrow's thread pool, whose start-up took 3 of the 4 ms a pair's one-row table cost."""
+    if columns is None and os.fstat(f.fileno()).st_size < SMALL_TABLE_BYTES:
+        return pq.ParquetFile(f).read(use_threads=False)
+    return pq.read_table(f, columns=columns)
+
+
+def _to_pandas(table: pa.Table) -> pd.DataFrame:
+    """``table`` as a DataFrame, in the calling thread alone when it is small."""
+    return table.to_pandas(use_threads=table.nbytes >= SMALL_TABLE_BYTES)
 
 
 def _local(path: UPath) -> bool:
@@ -216,13 +228,6 @@ def read_bundle(path: UPath, attempts: int = 20) -> dict[str, pd.DataFrame]:
     raise AssertionError("unreachable")
 
 
-def _small_or_threaded(f) -> pd.DataFrame:
-    """One Parquet file as a DataFrame; a small one (a pair's one-row tables) without Arrow's
-    thread pool, whose start-up cost 3 of the 4 ms such a read took."""
-    threads = os.fstat(f.fileno()).st_size >= SMALL_TABLE_BYTES
-    return pq.ParquetFile(f).read(use_threads=threads).to_pandas(use_threads=threads)
-
-
 def _read_bundle_dir(folder: str) -> dict[str, pd.DataFrame]:
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
     try:
@@ -237,7 +242,7 @@ def _read_bundle_dir(folder: str) -> dict[str, pd.DataFrame]:
         out = {}
         for name in expected if expected is not None else names:
             with open(os.open(f"{name}.parquet", os.O_RDONLY, dir_fd=fd), "rb") as f:
-                out[name] = _small_or_threaded(f)
+                out[name] = _to_pandas(_read_parquet(f))
         return out
     finally:
         os.close(fd)
@@ -321,7 +326,7 @@ class ParquetIOManager(UPathIOManager):
                 if columns is None:
                     _remember(table_path, table)
                 return table  # keep Arrow metadata (e.g. range images)
-            return table.to_pandas(use_threads=table.nbytes >= SMALL_TABLE_BYTES)
+            return _to_pandas(table)
         bundle_path = self._bundle_path(path)
         for k in range(5):  # a concurrent writer swaps a bundle folder in (see _swap_in)
             if bundle_path.exists():

@@ -88,12 +88,6 @@ def _resolver(defs: Definitions, instance: DagsterInstance) -> CachingStaleStatu
     return resolver_for_graph(defs.resolve_asset_graph(), instance)
 
 
-def indexed_records(defs: Definitions, campaign: Campaign, instance: DagsterInstance) -> IndexedRecords:
-    """The instance with every record of the campaign's assets read in bulk (:class:`.IndexedRecords`)."""
-    graph = defs.resolve_asset_graph()
-    return IndexedRecords(instance, [k for k in graph.get_all_asset_keys() if k.path[0] == campaign.key])
-
-
 def resolver_for_graph(graph, instance: DagsterInstance, records: IndexedRecords | None = None
                        ) -> CachingStaleStatusResolver:
     """Dagster's stale-status resolver on an asset graph (as the UI computes staleness); with
@@ -171,8 +165,9 @@ def direct_states(
     (a cause of its own: new code version, or an input with a new data version) or ``fresh``;
     ``check_files`` also hashes the scan files (a changed, not yet observed file: stale).
     ``only``: just these stages (the runner's later waves, whose scans are done)."""
-    records = indexed_records(defs, campaign, instance)
-    resolver = resolver_for_graph(defs.resolve_asset_graph(), instance, records)
+    graph = defs.resolve_asset_graph()  # the campaign's records read in bulk (issue 17)
+    records = IndexedRecords(instance, [k for k in graph.get_all_asset_keys() if k.path[0] == campaign.key])
+    resolver = resolver_for_graph(graph, instance, records)
     stages = [(s, g) for s, g in campaign_stages(defs, campaign) if only is None or s in only]
     resolver.instance_queryer.prefetch_asset_records([asset_key(campaign, s) for s, _ in stages])
     out: dict[tuple[str, str | None], str] = {}

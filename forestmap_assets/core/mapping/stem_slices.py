@@ -44,7 +44,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from forestmap_assets.core.geometry import transform_points
+from forestmap_assets.core.geometry import rot_z, transform_points
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -344,10 +344,8 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
         if sid not in placed.index:
             continue
         x, y, z, h = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
-        c, s = np.cos(np.radians(h)), np.sin(np.radians(h))
-        d = centre - (x, y)  # the stems in the scan's frame: R_z(-heading) (p - t)
-        cells = _StemCells(np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]]), zbh - z,
-                           reach, half)
+        local = (centre - (x, y)) @ rot_z(h)[:2, :2]  # the stems in the scan's frame: R^T (p - t)
+        cells = _StemCells(local, zbh - z, reach, half)
         cols = [tbl.column(a).to_numpy() for a in "xyz"]
         near = cells.near(*cols)
         out[sid] = np.column_stack([a[near] for a in cols])

@@ -215,7 +215,7 @@ def retry_candidates(
     ids = [str(s) for s in scan_ids]
     main = largest_group(ids, registrations)
     if len(main) == len(ids):
-        return _table([])
+        return no_candidates()
     searched = {frozenset(p) for p in zip(candidates["scan"], candidates["reference"], strict=True)}
     settings = screen_settings or ScreenSettings()
     empty = np.zeros((0, 3))
