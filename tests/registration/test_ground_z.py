@@ -70,3 +70,24 @@ def test_screened_box_is_centred_on_the_ground_dz():
     assert ground_z_box(centre, half, reg, {}, "S", "T", p.cell_m) == (centre, half)
     off = reg.model_copy(update={"screen_ground_hz_m": None})
     assert ground_z_box(centre, half, off, grids, "S", "T", p.cell_m) == (centre, half)
+
+
+def test_screened_box_moves_to_a_ground_dz_outside_the_z_range():
+    """On a slope the ground's dz may lie outside the thesis' z range about 0 (Sylva's survey 3:
+    1.41 m): the range moves there at its full width (the stems' features alone put such a
+    pair's dz up to 0.25 m from the ground's), instead of staying about 0 and failing."""
+    from forestmap_assets.core.registration.pair_registrations import ground_z_box
+    from forestmap_assets.params import RegistrationParams
+
+    rng = np.random.default_rng(6)
+    world = _ground_points(rng)
+    pose_s = (4.0, -2.0, 1.6, 35.0)  # 1.6 m above the reference, beyond z_m = 1.25
+    c, s = np.cos(np.radians(35)), np.sin(np.radians(35))
+    s_local = (world - np.array(pose_s[:3])) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    p = ElevationParams()
+    grids = {"S": elevation_grid(s_local, p), "T": elevation_grid(world, p)}
+    reg = RegistrationParams()
+    centre, half = (4.5, -2.0, 0.0, 37.0), (1.0, 1.0, reg.z_m, 10.0)
+    c2, h2 = ground_z_box(centre, half, reg, grids, "S", "T", p.cell_m)
+    assert abs(c2[2] - pose_s[2]) < 0.05
+    assert h2 == half and (c2[0], c2[1], c2[3]) == (centre[0], centre[1], centre[3])

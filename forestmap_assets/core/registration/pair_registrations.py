@@ -213,19 +213,49 @@ def _register_one(args):
 def ground_z_box(centre, half, params: RegistrationParams, elevation, scan: str, reference: str,
                  cell_m: float) -> tuple[tuple, tuple]:
     """A screened pair's box with z centred on the ground grids' dz at the screening motion and
-    half-width ``params.screen_ground_hz_m`` (or 3 of its sd), inside the original z range;
+    half-width ``params.screen_ground_hz_m`` (or 3 of its sd; at most the original half-width);
     the box unchanged without grids, without a ground estimate, or with the option off
-    (inferred, issue 16; a pair that fails is searched again in the no-prior box)."""
+    (inferred, issue 16; a pair that fails is searched again in the no-prior box). A ground dz
+    outside the original z range (``z_m`` about 0, the thesis' 1.25 m) moves the range there at
+    its full width: on a slope two scans 19 m apart stood 1.41 m apart in height (Sylva's survey
+    3), the search about 0 ended on the range's edge and was rejected twice, and the stems'
+    features alone put the dz of such a pair up to 0.25 m from the ground's."""
     hz = params.screen_ground_hz_m
     if hz is None or not elevation or elevation.get(scan) is None or elevation.get(reference) is None:
         return centre, half
     from forestmap_assets.core.registration.ground_z import ground_dz
 
     g = ground_dz(elevation[scan], elevation[reference], (centre[0], centre[1], 0.0, centre[3]), cell_m)
-    if not g.ok or abs(g.dz - centre[2]) > half[2]:
+    if not g.ok:
         return centre, half
+    if abs(g.dz - centre[2]) > half[2]:
+        return (centre[0], centre[1], g.dz, centre[3]), half
     new_hz = min(half[2], max(hz, 3 * g.sd))
     return (centre[0], centre[1], g.dz, centre[3]), (half[0], half[1], new_hz, half[3])
+
+
+def _ground_moved_job(job, result, params: RegistrationParams, elevation, candidate, cell_m: float,
+                      **judging):
+    """The search again of a pair whose peak lay on the edge of its dz range while the ground
+    grids put the dz outside that range (inferred, issue 16): the range moved to the ground's
+    dz at the peak, at its full width, about the peak's x, y and heading in the screening box
+    (``params.screen_box``; the stems fix those and hardly z). None when that is not the case.
+    The thesis' range of +-1.25 m about 0 (or about an a priori dz) misses scans on a slope."""
+    if not elevation or elevation.get(candidate.scan) is None or elevation.get(candidate.reference) is None:
+        return None
+    _, reason, _ = judge_in_box(result, params, job[2], job[3], job[5], **judging)
+    if not reason.startswith("peak on the edge of the search box in dz"):
+        return None
+    from forestmap_assets.core.registration.ground_z import ground_dz
+
+    peak = np.asarray(result.peak, dtype=float)
+    g = ground_dz(elevation[candidate.scan], elevation[candidate.reference], peak, cell_m)
+    centre, half = job[2], job[3]
+    if not g.ok or abs(g.dz - centre[2]) <= half[2]:
+        return None
+    bx, bh = params.screen_box
+    return (job[0], job[1], (peak[0], peak[1], g.dz, peak[3]),
+            (min(bx, half[0]), min(bx, half[1]), half[2], min(bh, half[3])), job[4], 0.0)
 
 
 def register_candidates(
@@ -269,6 +299,12 @@ def register_candidates(
     results = []
     for k, job in enumerate(jobs):
         results.append(_register_one(job))
+        moved = _ground_moved_job(job, results[-1], params, elevation, candidates.iloc[k], elevation_cell_m,
+                                  min_matched_points=min_matched_points, ambiguity_margin=ambiguity_margin)
+        if moved is not None:  # the dz range moved to the ground's: searched again there
+            first = results[-1].seconds
+            jobs[k], results[-1] = moved, _register_one(moved)
+            results[-1].seconds += first
         if progress:
             progress(f"pair {k + 1}/{len(jobs)}: {candidates.iloc[k]['scan']}-{candidates.iloc[k]['reference']} {results[-1].seconds:.1f} s")
 
