@@ -105,3 +105,47 @@ def test_ground_dz_gate_uses_the_feature_dz_sd(monkeypatch):
         assert row["status"] == "accepted" and row["z_source"].startswith(source)
         want = offset if source == "ground" else 0.0
         assert row["dz"] == pytest.approx(want, abs=1e-9)
+
+
+def test_a_peak_on_the_dz_edge_is_searched_again_at_the_grounds_dz(monkeypatch):
+    """A no-prior pair whose scan stands 1.6 m above its reference (a slope) peaks on the edge of
+    the thesis' dz range (+-1.25 m about 0) and was rejected; the ground grids put the dz at
+    1.6 m, so the pair is searched again there, about the peak's x, y and heading in the
+    screening box, and accepted. Where the ground's dz lies inside the range, nothing moves."""
+    from forestmap_assets.core.registration import pair_registrations as pr
+    from forestmap_assets.core.registration.register import RegistrationResult
+    from forestmap_assets.core.registration.score import ScoreModel
+    from forestmap_assets.params import RegistrationParams
+
+    params = RegistrationParams(min_support_m=0.0, max_rival_ratio=None)
+    n, jobs = 200, []
+
+    def search(job):
+        jobs.append(job)
+        z = min(job[2][2] + job[3][2] - 0.01, 1.6)  # the features' peak: 1.6, or the range's edge
+        return RegistrationResult(
+            status="ok", peak=(3.0, -4.0, z, 120.0), peak_score=n * ScoreModel().ln_p0,
+            centre=(3.0, -4.0, z, 120.0), sigma=(0.005, 0.005, 0.05, 0.02), cloud_cells=3,
+            peak_mass_share=1.0, n_points=n, final_step=(0.02, 0.02, 0.02, 0.1), d_bar_m=5.0,
+            matched_stems=10)
+
+    monkeypatch.setattr(pr, "_register_one", search)
+    k = np.arange(-60, 60)
+    ix, iy = (a.ravel() for a in np.meshgrid(k, k, indexing="ij"))
+    flat = pd.DataFrame({"ix": ix, "iy": iy, "z": np.zeros(len(ix))})
+    cand = pd.DataFrame([dict(scan="B", reference="A", cx=0.0, cy=0.0, cz=0.0, cheading_deg=0.0,
+                              hx=15.0, hy=15.0, hz=1.25, hheading_deg=180.0, box_heading_deg=0.0,
+                              source="no_prior")])
+    sub = {s: pd.DataFrame({"x": [0.0], "y": [0.0], "z": [0.0]}) for s in "AB"}
+    # the scan 1.6 m higher: its ground 1.6 m below it, the reference's level with it
+    out = pr.register_candidates(cand, sub, params, elevation={"A": flat, "B": flat.assign(z=-1.6)})
+    row = out["registrations"].iloc[0]
+    assert len(jobs) == 2 and row["status"] == "accepted"
+    assert jobs[1][2] == pytest.approx((3.0, -4.0, 1.6, 120.0), abs=0.01)
+    assert jobs[1][3] == (1.0, 1.0, 1.25, 10.0)
+    assert row["dz"] == pytest.approx(1.6, abs=0.01) and row["z_source"].startswith("ground")
+    # the ground inside the range (the scan 1.0 m higher): no second search, the edge stays
+    jobs.clear()
+    out = pr.register_candidates(cand.assign(hz=1.0), sub, params,
+                                 elevation={"A": flat, "B": flat.assign(z=-0.9)})
+    assert len(jobs) == 1 and out["registrations"].iloc[0]["status"] == "rejected"
