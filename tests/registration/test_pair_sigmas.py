@@ -111,7 +111,7 @@ def test_a_peak_on_the_dz_edge_is_searched_again_at_the_grounds_dz(monkeypatch):
     """A no-prior pair whose scan stands 1.6 m above its reference (a slope) peaks on the edge of
     the thesis' dz range (+-1.25 m about 0) and was rejected; the ground grids put the dz at
     1.6 m, so the pair is searched again there, about the peak's x, y and heading in the
-    screening box, and accepted. Where the ground's dz lies inside the range, nothing moves."""
+    screening box, and accepted. Where the range would not change, nothing is searched again."""
     from forestmap_assets.core.registration import pair_registrations as pr
     from forestmap_assets.core.registration.register import RegistrationResult
     from forestmap_assets.core.registration.score import ScoreModel
@@ -144,8 +144,15 @@ def test_a_peak_on_the_dz_edge_is_searched_again_at_the_grounds_dz(monkeypatch):
     assert jobs[1][2] == pytest.approx((3.0, -4.0, 1.6, 120.0), abs=0.01)
     assert jobs[1][3] == (1.0, 1.0, 1.25, 10.0)
     assert row["dz"] == pytest.approx(1.6, abs=0.01) and row["z_source"].startswith("ground")
-    # the ground inside the range (the scan 1.0 m higher): no second search, the edge stays
+    # a screened pair's narrow range about the ground's dz (1.2 +- 0.3 m) too narrow for the
+    # features' 1.6 m: searched again about the ground's dz at least z_m wide
     jobs.clear()
-    out = pr.register_candidates(cand.assign(hz=1.0), sub, params,
-                                 elevation={"A": flat, "B": flat.assign(z=-0.9)})
+    out = pr.register_candidates(cand.assign(cz=1.2, hz=0.3), sub, params,
+                                 elevation={"A": flat, "B": flat.assign(z=-1.2)})
+    assert len(jobs) == 2 and jobs[1][2][2] == pytest.approx(1.2, abs=0.01) and jobs[1][3][2] == params.z_m
+    # the range would not change (the ground's dz at its centre, already z_m wide): no second
+    # search, the edge stays
+    jobs.clear()
+    out = pr.register_candidates(cand.assign(hz=1.25), sub, params,
+                                 elevation={"A": flat, "B": flat})
     assert len(jobs) == 1 and out["registrations"].iloc[0]["status"] == "rejected"
