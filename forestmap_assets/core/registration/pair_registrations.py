@@ -83,6 +83,12 @@ def matched_points(peak_score: float, n_points: int, params: RegistrationParams)
     return float(max(0.0, (peak_score - model.floor(n_points)) / (model.ln_p0 - model.ln_k1)))
 
 
+def edge_reason(axis: str) -> str:
+    """The rejection reason of a peak on the edge of the search box along ``axis`` (dx, dy, dz,
+    dheading)."""
+    return f"peak on the edge of the search box in {axis}: the maximum may lie outside"
+
+
 def judge(result, params: RegistrationParams, centre, half_widths, *, min_matched_points: float = 40.0,
           ambiguity_margin: float = 10.0) -> tuple[str, str, dict]:
     """Status (accepted / rejected / failed), one-line reason and extra figures of one result.
@@ -122,7 +128,7 @@ def judge(result, params: RegistrationParams, centre, half_widths, *, min_matche
         val = peak[k] if k < 3 else centre[3] + wrap_deg(peak[3] - centre[3])
         if val - lo[k] < 1.01 * step[k] or hi[k] - val < 1.01 * step[k]:
             name = ("dx", "dy", "dz", "dheading")[k]
-            return "rejected", f"peak on the edge of the search box in {name}: the maximum may lie outside", extra
+            return "rejected", edge_reason(name), extra
     if np.isfinite(gap) and gap < ambiguity_margin:
         return "rejected", f"ambiguous: a second hypothesis {hyp['separation_m'].iloc[int(np.argmax(hyp['peak_score'].to_numpy()))]:.2f} m away scores within {gap:.1f} of the best", extra
     return "accepted", "", extra
@@ -247,7 +253,7 @@ def _ground_moved_job(job, result, params: RegistrationParams, elevation, candid
     if not elevation or elevation.get(candidate.scan) is None or elevation.get(candidate.reference) is None:
         return None
     _, reason, _ = judge_in_box(result, params, job[2], job[3], job[5], **judging)
-    if not reason.startswith("peak on the edge of the search box in dz"):
+    if reason != edge_reason("dz"):
         return None
     from forestmap_assets.core.registration.ground_z import ground_dz
 
