@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 from scipy import ndimage
 
-from forestmap_assets.core.exploration.surface import surface_points
+from forestmap_assets.core.exploration import _grid_kernels as kernels
 from forestmap_assets.core.features.elevation import ElevationGrid
 from forestmap_assets.params.men import ExplorationConfig
 
@@ -160,19 +160,43 @@ class ExplorationGrid:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=np.float64)
         m = w if measured is None else np.asarray(measured, dtype=np.float64)
-        ix, iy, h, inside = self.heights(pts[:, 0], pts[:, 1], pts[:, 2])
-        cell = ix * self.ny + iy
-        iz, ok = self._levels(h, inside)  # flat_index, from the heights computed once
-        idx = cell[ok] * self.nz + iz[ok]
-        self.counts += np.bincount(idx, weights=w[ok], minlength=self.counts.size)
-        self.measured += np.bincount(idx, weights=m[ok], minlength=self.counts.size)
-        top = inside & (h >= self.z_min + self.nz * self.dz)
-        self.above += np.bincount(cell[top], weights=w[top], minlength=self.nx * self.ny).reshape(
-            self.shape
-        )
-        self.points += np.bincount(
-            cell[inside], weights=m[inside], minlength=self.nx * self.ny
-        ).reshape(self.shape)
+        sums = [np.zeros(self.counts.size), np.zeros(self.counts.size), np.zeros(self.nx * self.ny),
+                np.zeros(self.nx * self.ny)]  # counts, measured, above, points: as np.bincount
+        has_ground = self.ground_z is not None
+        ground = np.ascontiguousarray(self.ground_z if has_ground else np.zeros((1, 1)), dtype=np.float64)
+        kernels.accumulate(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                           np.ascontiguousarray(pts[:, 2]), np.ascontiguousarray(np.broadcast_to(w, len(pts))),
+                           np.ascontiguousarray(np.broadcast_to(m, len(pts))), float(self.x0), float(self.y0),
+                           float(self.cell_m), int(self.nx), int(self.ny), float(self.z_min), float(self.dz),
+                           int(self.nz), ground, has_ground, *sums)
+        self.counts += sums[0]
+        self.measured += sums[1]
+        self.above += sums[2].reshape(self.shape)
+        self.points += sums[3].reshape(self.shape)
+        return self
+
+    def add_surface(
+        self, surface: pd.DataFrame, voxel_m: float, pose, max_range_m: float | None = None
+    ) -> ExplorationGrid:
+        """One scan's observed surface (:data:`~.surface.SURFACE_COLUMNS`, levelled scan frame,
+        ``pose`` of the scan) added in place with weights ``n_points + n_filled`` (``n_points``
+        measured), voxels farther than ``max_range_m`` horizontally from the scanner left out:
+        :func:`~.surface.surface_points` then :meth:`add_points` in one compiled pass (the
+        weights are whole numbers, so the sums do not depend on their order)."""
+        if not len(surface):
+            return self
+        for name in ("counts", "measured", "above", "points"):  # the kernel writes into them
+            setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float64))
+        col = lambda c: np.ascontiguousarray(surface[c].to_numpy(), dtype=np.int64)  # noqa: E731
+        has_ground = self.ground_z is not None
+        ground = np.ascontiguousarray(self.ground_z if has_ground else np.zeros((1, 1)), dtype=np.float64)
+        kernels.accumulate_surface(
+            col("ix"), col("iy"), col("iz"), col("n_points"), col("n_filled"), float(voxel_m),
+            np.asarray(pose, dtype=np.float64), np.inf if max_range_m is None else float(max_range_m),
+            float(self.x0), float(self.y0), float(self.cell_m), int(self.nx), int(self.ny),
+            float(self.z_min), float(self.dz), int(self.nz), ground, has_ground, self.counts,
+            self.measured, self.above.reshape(-1), self.points.reshape(-1),
+        )  # fmt: skip
         return self
 
 
@@ -273,6 +297,5 @@ def build_grid(
     for table, pose, voxel_m in surfaces:
         if table is None or not len(table):
             continue
-        pts, n_pts, n_fill = surface_points(table, voxel_m, pose, max_range_m=config.map_range_m)
-        grid.add_points(pts, n_pts + n_fill, measured=n_pts)
+        grid.add_surface(table, voxel_m, pose, config.map_range_m)
     return grid

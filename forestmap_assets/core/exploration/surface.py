@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from forestmap_assets.core.exploration import _grid_kernels as grid_kernels
 from forestmap_assets.core.exploration import _surface_kernels as kernels
 from forestmap_assets.core.exploration.occlusion import (
     boundaries_table,
@@ -17,7 +18,6 @@ from forestmap_assets.core.exploration.occlusion import (
     point_source,
 )
 from forestmap_assets.core.features.range_image import RangeImage
-from forestmap_assets.core.geometry import transform_points
 from forestmap_assets.params.men import OcclusionConfig
 
 SURFACE_COLUMNS = ["ix", "iy", "iz", "n_points", "n_filled"]
@@ -102,15 +102,12 @@ def surface_points(
     """Voxel centres of an observed surface in the global frame (``pose`` of the scan), with their
     ``n_points`` and ``n_filled``; voxels farther than ``max_range_m`` horizontally from the
     scanner are left out."""
-    ijk = surface[["ix", "iy", "iz"]].to_numpy(np.float64)
-    local = (ijk + 0.5) * voxel_m
-    keep = (
-        np.ones(len(local), bool)
-        if max_range_m is None
-        else np.hypot(local[:, 0], local[:, 1]) <= max_range_m
-    )
+    col = lambda c: np.ascontiguousarray(surface[c].to_numpy(), dtype=np.int64)  # noqa: E731
+    xyz, keep = grid_kernels.surface_xyz(col("ix"), col("iy"), col("iz"), float(voxel_m),
+                                         np.asarray(pose, dtype=np.float64),
+                                         np.inf if max_range_m is None else float(max_range_m))
     return (
-        transform_points(local[keep], pose),
+        xyz[keep],
         surface["n_points"].to_numpy(np.float64)[keep],
         surface["n_filled"].to_numpy(np.float64)[keep],
     )

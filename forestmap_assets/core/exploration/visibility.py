@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from forestmap_assets.core.exploration import _grid_kernels as kernels
 from forestmap_assets.core.exploration.grid import ExplorationGrid
 from forestmap_assets.params.men import ExplorationConfig
 
@@ -44,7 +45,8 @@ def visible_cells(
     a scan at each position would see. Rays every ``360/n_rays`` deg are sampled every half cell
     from ``blind_radius_m`` (nothing below the scanner's lowest beam) to ``radius_m``; a ray stops
     at the first ``occluders`` cell (which is itself seen) and at the first stem disc
-    (``stems`` rows ``x, y, r``, exact ray-circle intersection: trunk occlusion)."""
+    (``stems`` rows ``x, y, r``, exact ray-circle intersection: trunk occlusion); each ray is
+    walked only as far as it sees (:func:`._grid_kernels.walk_rays`)."""
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     stems = (
         np.zeros((0, 3)) if stems is None else np.asarray(stems, dtype=np.float64).reshape(-1, 3)
@@ -69,15 +71,8 @@ def visible_cells(
             else stems
         )
         t_stem = _ray_circle_t(p, u, near)  # (n, m)
-        xy = p[:, None, None, :] + t[None, None, :, None] * u[None, :, None, :]  # (n, m, k, 2)
-        ix, iy, inside = grid.cell_of(xy[..., 0], xy[..., 1])
-        flat = np.where(inside, ix * grid.ny + iy, 0)
-        blocked = inside & occ[flat]
-        # samples after the first occluder sample are hidden; the occluder sample itself is seen
-        hidden = np.cumsum(blocked, axis=2) - blocked > 0
-        seen = inside & ~hidden & (t[None, None, :] < t_stem[:, :, None])
-        rows = np.broadcast_to(np.arange(len(p))[:, None, None], seen.shape)
-        out[a + rows[seen], flat[seen]] = True
+        kernels.walk_rays(p, u, t, t_stem, occ, float(grid.x0), float(grid.y0), float(grid.cell_m),
+                          int(grid.nx), int(grid.ny), out, a)
     return out
 
 

@@ -25,6 +25,7 @@ def exploration_figure(
 ):
     """Picture: elevation map, unmapped / obstacle cells, stems, scan positions, frontier,
     proposals (numbered by rank) and the walking paths to them (a matplotlib Figure)."""
+    from matplotlib.collections import PatchCollection
     from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle
@@ -78,8 +79,8 @@ def exploration_figure(
         )
     if stems is not None and len(stems):
         st = np.asarray(stems, dtype=np.float64).reshape(-1, 3)
-        for x, y, r in st:
-            ax.add_patch(Circle((x, y), r, facecolor="saddlebrown", edgecolor="none"))
+        discs = [Circle((x, y), r) for x, y, r in st]  # one collection: a patch each took 0.7 s
+        ax.add_collection(PatchCollection(discs, facecolor="saddlebrown", edgecolor="none"))
         ax.scatter(
             st[:, 0],
             st[:, 1],
