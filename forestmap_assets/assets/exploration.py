@@ -75,8 +75,9 @@ def exploration_assets(campaign: Campaign) -> list:
     @asset(
         key=key("next_vantage_points"),
         ins={
-            "occlusion_boundaries": AssetIn(
-                key=key("occlusion_boundaries"), metadata={"allow_missing_partitions": True}
+            "occlusion_boundaries": AssetIn(  # each scan's surface, not its boundary pixels
+                key=key("occlusion_boundaries"),
+                metadata={"allow_missing_partitions": True, "tables": ["surface", "info"]},
             ),
             "integrated_map": AssetIn(key=key("integrated_map")),
             "tree_list": AssetIn(key=key("tree_list")),

@@ -15,7 +15,7 @@ import os
 import time
 import uuid
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -207,20 +207,24 @@ def write_bundle_atomic(bundle: dict[str, Any], path: UPath) -> None:
         raise
 
 
-def read_bundle(path: UPath, attempts: int = 20) -> dict[str, pd.DataFrame]:
-    """The tables of a bundle folder. Locally the folder is read through one open directory
-    handle, so a concurrent writer swapping a new folder in (:func:`_swap_in`) cannot mix two
-    versions; a folder being deleted under the reader is read again from its new self."""
+def read_bundle(
+    path: UPath, attempts: int = 20, tables: Collection[str] | None = None
+) -> dict[str, pd.DataFrame]:
+    """The tables of a bundle folder (``tables``: only those of them that it holds). Locally
+    the folder is read through one open directory handle, so a concurrent writer swapping a
+    new folder in (:func:`_swap_in`) cannot mix two versions; a folder being deleted under the
+    reader is read again from its new self."""
     path = UPath(path)
     if not _local(path):
         return {
             p.name.removesuffix(".parquet"): read_table(p).to_pandas()
             for p in sorted(path.iterdir())
             if p.name.endswith(".parquet")
+            and (tables is None or p.name.removesuffix(".parquet") in tables)
         }
     for k in range(attempts):
         try:
-            return _read_bundle_dir(path.path)
+            return _read_bundle_dir(path.path, tables)
         except FileNotFoundError:
             if k == attempts - 1:
                 raise
@@ -228,7 +232,7 @@ def read_bundle(path: UPath, attempts: int = 20) -> dict[str, pd.DataFrame]:
     raise AssertionError("unreachable")
 
 
-def _read_bundle_dir(folder: str) -> dict[str, pd.DataFrame]:
+def _read_bundle_dir(folder: str, tables: Collection[str] | None = None) -> dict[str, pd.DataFrame]:
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
     try:
         names = sorted(n.removesuffix(".parquet") for n in os.listdir(fd) if n.endswith(".parquet"))
@@ -241,6 +245,8 @@ def _read_bundle_dir(folder: str) -> dict[str, pd.DataFrame]:
             raise FileNotFoundError(f"{folder}: empty bundle folder (being replaced?)")
         out = {}
         for name in expected if expected is not None else names:
+            if tables is not None and name not in tables:
+                continue
             with open(os.open(f"{name}.parquet", os.O_RDONLY, dir_fd=fd), "rb") as f:
                 out[name] = _to_pandas(_read_parquet(f))
         return out
@@ -318,9 +324,10 @@ class ParquetIOManager(UPathIOManager):
         table_path = self._table_path(path)
         if (table := _recalled(table_path)) is not None:
             return table
+        wanted = getattr(context, "definition_metadata", None) or {}
         if table_path.exists():
             # an input's metadata "columns": read only those (tree_list: x, y, z of the images)
-            columns = (getattr(context, "definition_metadata", None) or {}).get("columns")
+            columns = wanted.get("columns")
             table = read_table(table_path, columns=columns)
             if (table.schema.metadata or {}).get(b"forestmap.kind"):
                 if columns is None:
@@ -329,8 +336,8 @@ class ParquetIOManager(UPathIOManager):
             return _to_pandas(table)
         bundle_path = self._bundle_path(path)
         for k in range(5):  # a concurrent writer swaps a bundle folder in (see _swap_in)
-            if bundle_path.exists():
-                return read_bundle(bundle_path)
+            if bundle_path.exists():  # an input's metadata "tables": read only those of a bundle
+                return read_bundle(bundle_path, tables=wanted.get("tables"))
             if not _being_swapped(bundle_path):
                 break
             time.sleep(0.02 * (k + 1))

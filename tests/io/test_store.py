@@ -35,6 +35,24 @@ def test_bundle_round_trip_and_replace(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["b.bundle"]
 
 
+def test_bundle_tables_read_only_those_asked_for(tmp_path):
+    """An input's metadata "tables" (next_vantage_points reads each scan's surface, not its
+    boundary pixels): only those tables are read, locally and through fsspec."""
+    bundle = {"boundaries": pd.DataFrame({"v": range(5)}), "surface": pd.DataFrame({"ix": [1, 2]}),
+              "info": pd.DataFrame({"voxel_m": [0.05]})}
+    for path in (UPath(tmp_path / "o.bundle"), UPath("memory://forestmap-test/o.bundle")):
+        store.write_bundle_atomic(bundle, path)
+        got = store.read_bundle(path, tables=["surface", "info", "absent"])
+        assert sorted(got) == ["info", "surface"] and got["surface"]["ix"].tolist() == [1, 2]
+        assert sorted(store.read_bundle(path)) == ["boundaries", "info", "surface"]
+
+    class Context:  # what Dagster hands the IO manager for an input with that metadata
+        definition_metadata = {"tables": ["surface"]}
+
+    manager = store.ParquetIOManager(base_path=UPath(tmp_path))
+    assert list(manager.load_from_path(Context(), UPath(tmp_path / "o"))) == ["surface"]
+
+
 def test_fsspec_memory_url():
     path = UPath("memory://forestmap-test/t.parquet")
     store.write_table_atomic(pd.DataFrame({"a": [1, 2]}), path)
