@@ -14,6 +14,7 @@ import pandas as pd
 from scipy import ndimage
 
 from forestmap_assets.core.exploration import _grid_kernels as kernels
+from forestmap_assets.core.exploration.surface import col_int, voxel_indices
 from forestmap_assets.core.features.elevation import ElevationGrid
 from forestmap_assets.params.men import ExplorationConfig
 
@@ -156,24 +157,28 @@ class ExplorationGrid:
 
         ``measured``: the share of each weight that is measured returns (default: all of it),
         kept in ``measured`` and ``points``; points above the top level go to ``above``, points
-        outside B or below the bottom level are dropped."""
+        outside B or below the bottom level are dropped. One compiled pass
+        (:func:`._grid_kernels.accumulate`), summed as ``np.bincount`` sums."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=np.float64)
         m = w if measured is None else np.asarray(measured, dtype=np.float64)
         sums = [np.zeros(self.counts.size), np.zeros(self.counts.size), np.zeros(self.nx * self.ny),
                 np.zeros(self.nx * self.ny)]  # counts, measured, above, points: as np.bincount
-        has_ground = self.ground_z is not None
-        ground = np.ascontiguousarray(self.ground_z if has_ground else np.zeros((1, 1)), dtype=np.float64)
-        kernels.accumulate(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
-                           np.ascontiguousarray(pts[:, 2]), np.ascontiguousarray(np.broadcast_to(w, len(pts))),
-                           np.ascontiguousarray(np.broadcast_to(m, len(pts))), float(self.x0), float(self.y0),
-                           float(self.cell_m), int(self.nx), int(self.ny), float(self.z_min), float(self.dz),
-                           int(self.nz), ground, has_ground, *sums)
+        col = lambda a: np.ascontiguousarray(np.broadcast_to(a, len(pts)), dtype=np.float64)  # noqa: E731
+        kernels.accumulate(col(pts[:, 0]), col(pts[:, 1]), col(pts[:, 2]), col(w), col(m),
+                           *self._kernel_grid(), *sums)
         self.counts += sums[0]
         self.measured += sums[1]
         self.above += sums[2].reshape(self.shape)
         self.points += sums[3].reshape(self.shape)
         return self
+
+    def _kernel_grid(self) -> tuple:
+        """The grid's geometry and ground as :mod:`._grid_kernels` takes them."""
+        has_ground = self.ground_z is not None
+        ground = np.ascontiguousarray(self.ground_z if has_ground else np.zeros((1, 1)), dtype=np.float64)
+        return (float(self.x0), float(self.y0), float(self.cell_m), int(self.nx), int(self.ny),
+                float(self.z_min), float(self.dz), int(self.nz), ground, has_ground)
 
     def add_surface(
         self, surface: pd.DataFrame, voxel_m: float, pose, max_range_m: float | None = None
@@ -187,15 +192,11 @@ class ExplorationGrid:
             return self
         for name in ("counts", "measured", "above", "points"):  # the kernel writes into them
             setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float64))
-        col = lambda c: np.ascontiguousarray(surface[c].to_numpy(), dtype=np.int64)  # noqa: E731
-        has_ground = self.ground_z is not None
-        ground = np.ascontiguousarray(self.ground_z if has_ground else np.zeros((1, 1)), dtype=np.float64)
         kernels.accumulate_surface(
-            col("ix"), col("iy"), col("iz"), col("n_points"), col("n_filled"), float(voxel_m),
-            np.asarray(pose, dtype=np.float64), np.inf if max_range_m is None else float(max_range_m),
-            float(self.x0), float(self.y0), float(self.cell_m), int(self.nx), int(self.ny),
-            float(self.z_min), float(self.dz), int(self.nz), ground, has_ground, self.counts,
-            self.measured, self.above.reshape(-1), self.points.reshape(-1),
+            *voxel_indices(surface), col_int(surface, "n_points"), col_int(surface, "n_filled"),
+            float(voxel_m), np.asarray(pose, dtype=np.float64),
+            np.inf if max_range_m is None else float(max_range_m), *self._kernel_grid(),
+            self.counts, self.measured, self.above.reshape(-1), self.points.reshape(-1),
         )  # fmt: skip
         return self
 

@@ -92,6 +92,16 @@ def observed_surface(
     )
 
 
+def col_int(table: pd.DataFrame, name: str) -> np.ndarray:
+    """A column as a contiguous int64 array (what the compiled kernels take)."""
+    return np.ascontiguousarray(table[name].to_numpy(), dtype=np.int64)
+
+
+def voxel_indices(surface: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``ix, iy, iz`` of an observed surface's voxels (:data:`SURFACE_COLUMNS`)."""
+    return col_int(surface, "ix"), col_int(surface, "iy"), col_int(surface, "iz")
+
+
 def surface_points(
     surface: pd.DataFrame,
     voxel_m: float,
@@ -102,8 +112,7 @@ def surface_points(
     """Voxel centres of an observed surface in the global frame (``pose`` of the scan), with their
     ``n_points`` and ``n_filled``; voxels farther than ``max_range_m`` horizontally from the
     scanner are left out."""
-    col = lambda c: np.ascontiguousarray(surface[c].to_numpy(), dtype=np.int64)  # noqa: E731
-    xyz, keep = grid_kernels.surface_xyz(col("ix"), col("iy"), col("iz"), float(voxel_m),
+    xyz, keep = grid_kernels.surface_xyz(*voxel_indices(surface), float(voxel_m),
                                          np.asarray(pose, dtype=np.float64),
                                          np.inf if max_range_m is None else float(max_range_m))
     return (
