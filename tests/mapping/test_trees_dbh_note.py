@@ -108,3 +108,16 @@ def test_every_tree_has_a_dbh_or_a_note_and_geojson_carries_it(tmp_path):
     assert [p["dbh_note"] for p in props] == list(trees["dbh_note"])
     assert props[0]["dbh_m"] is None and props[0]["dbh_note"].startswith("no DBH")
     assert "dbh_note" not in CSV_COLUMNS  # trees.csv keeps the header of the design contract
+
+
+def test_ground_seen_above_the_stem_is_bounded_by_its_lowest_cylinder():
+    """Every cell around the stem holds a crown hit 4.9 m up (the ground was never seen there):
+    breast height is taken 1.3 m above the lowest cylinder end, not 1.3 m above the crown, where
+    the stem is thinner (a rendered survey's 47 cm stem read 35.7 cm)."""
+    crown = SimpleNamespace(z=np.full((100, 100), GROUND + 4.9), x0=-5.0, y0=-5.0, cell_m=0.1)
+    stem = (_cyl(0.0, 0.24, 0.20, 0.2, 5.0), _cyl(0.0, 0.17, 0.15, 5.2, 8.0, scan="B"))
+    tree = _one_tree(*stem, grid=crown)
+    assert tree["z"] == pytest.approx(GROUND + 0.2)
+    assert tree["dbh_m"] == pytest.approx(2 * (0.24 - 0.04 * 1.3 / 4.8), abs=1e-3)
+    assert "seen 4.7 m above its lowest cylinder" in tree["dbh_note"]
+    assert _one_tree(*stem)["z"] == pytest.approx(GROUND)  # the ground seen below the stem stays

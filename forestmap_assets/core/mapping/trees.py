@@ -9,7 +9,7 @@ breast height is forestmap's step (inferred, parameters below):
 2. the ground under a stem is the median of the lowest-hit elevation cells in an annulus
    around it, keeping only cells near the annulus' lowest surface (crown hits in cells the
    ground was not seen in are ignored, :func:`ground_under`), falling back to the lowest
-   cylinder end;
+   cylinder end, which also bounds it from above (the ground cannot lie above a seen stem);
 3. breast height is ``breast_height_m`` (1.3 m) above that ground; the stem position is the
    n_circles-weighted mean of the cylinder axes evaluated there, and DBH is twice the
    weighted mean truncated-cone radius at that height (slope limited to a plausible stem
@@ -302,7 +302,10 @@ def merge_trees(
     for k, s in enumerate(stems):
         m = labels == s
         ground_seen = bool(np.isfinite(ground[k]))
-        g = ground[k] if ground_seen else zlo[m].min()
+        # the ground cannot lie above the stem's lowest cylinder end: an annulus whose lowest
+        # hits are all crown (a rendered survey: 4.9 m up, the DBH 11.6 cm short) takes that end
+        ground_above = ground_seen and ground[k] > zlo[m].min()
+        g = ground[k] if ground_seen and not ground_above else zlo[m].min()
         zbh = g + breast_height_m
         sub = cyl[m]
         zb = np.full(m.sum(), zbh)
@@ -334,10 +337,11 @@ def merge_trees(
                      else f"the highest ends {zhi[m][j] - g:.1f} m")
             note = (f"no DBH: no cylinder within {dbh_extrapolate_m:g} m of breast height "
                     f"({where} above the ground)")
-        if not ground_seen:
+        if not ground_seen or ground_above:
+            why = ("ground under the stem not seen" if not ground_seen
+                   else f"ground under the stem seen {ground[k] - g:.1f} m above its lowest cylinder")
             note = "; ".join(filter(None, [
-                "ground under the stem not seen: breast height taken "
-                f"{breast_height_m:g} m above the lowest cylinder end", note]))
+                f"{why}: breast height taken {breast_height_m:g} m above the lowest cylinder end", note]))
         # visible length: union of the cylinders' height intervals
         order = np.argsort(zlo[m])
         total, cur_lo, cur_hi = 0.0, None, None
