@@ -46,47 +46,25 @@ def accumulate(x, y, z, w, m, x0, y0, cell_m, nx, ny, z_min, dz, nz, ground, has
              counts, measured, above, points)
 
 
-@nb.njit(cache=True, inline="always")
-def _voxel_xyz(ix, iy, iz, voxel_m, c, s, pose):  # pragma: no cover - compiled
-    """Levelled-frame centre of voxel (ix, iy, iz), its horizontal range, and its global point."""
-    lx = (np.float64(ix) + 0.5) * voxel_m
-    ly = (np.float64(iy) + 0.5) * voxel_m
-    lz = (np.float64(iz) + 0.5) * voxel_m
-    return np.hypot(lx, ly), lx * c - ly * s + pose[0], lx * s + ly * c + pose[1], lz + pose[2]
-
-
 @nb.njit(cache=True)
 def accumulate_surface(ix, iy, iz, n_points, n_filled, voxel_m, pose, max_range_m, x0, y0, cell_m,
                        nx, ny, z_min, dz, nz, ground, has_ground, counts, measured, above,
                        points):  # pragma: no cover - compiled
-    """One scan's observed-surface voxels (:func:`surface_xyz`, within ``max_range_m``) into the
+    """One scan's observed-surface voxels (centres in the global frame, within ``max_range_m``
+    horizontally of the scanner, ``inf``: all; ``pose`` x, y, z, heading in degrees) into the
     grid's sums with weights ``n_points + n_filled`` and ``n_points`` (measured): the numpy
     :func:`.surface.surface_points` then :meth:`.grid.ExplorationGrid.add_points` in one pass."""
     h = np.radians(pose[3])
     c, s = np.cos(h), np.sin(h)
     for j in range(ix.size):
-        rng, x, y, z = _voxel_xyz(ix[j], iy[j], iz[j], voxel_m, c, s, pose)
-        if rng <= max_range_m:
+        lx = (np.float64(ix[j]) + 0.5) * voxel_m  # the voxel's centre, levelled scan frame
+        ly = (np.float64(iy[j]) + 0.5) * voxel_m
+        if np.hypot(lx, ly) <= max_range_m:
             m = np.float64(n_points[j])
-            _add(x, y, z, m + np.float64(n_filled[j]), m, x0, y0, cell_m, nx, ny, z_min, dz, nz,
-                 ground, has_ground, counts, measured, above, points)
-
-
-@nb.njit(cache=True)
-def surface_xyz(ix, iy, iz, voxel_m, pose, max_range_m):  # pragma: no cover - compiled
-    """Global voxel centres of one scan's observed surface (voxel indices ``ix, iy, iz`` in its
-    levelled frame, ``pose`` x, y, z, heading in degrees) and the mask of voxels within ``max_range_m``
-    horizontally of the scanner (``inf``: all) (:func:`.surface.surface_points`)."""
-    n = ix.size
-    out = np.empty((n, 3))
-    keep = np.zeros(n, np.bool_)
-    h = np.radians(pose[3])
-    c, s = np.cos(h), np.sin(h)
-    for j in range(n):
-        rng, x, y, z = _voxel_xyz(ix[j], iy[j], iz[j], voxel_m, c, s, pose)
-        out[j, 0], out[j, 1], out[j, 2] = x, y, z
-        keep[j] = rng <= max_range_m
-    return out, keep
+            _add(lx * c - ly * s + pose[0], lx * s + ly * c + pose[1],
+                 (np.float64(iz[j]) + 0.5) * voxel_m + pose[2], m + np.float64(n_filled[j]), m, x0,
+                 y0, cell_m, nx, ny, z_min, dz, nz, ground, has_ground, counts, measured, above,
+                 points)
 
 
 @nb.njit(cache=True)

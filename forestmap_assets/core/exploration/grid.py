@@ -14,7 +14,6 @@ import pandas as pd
 from scipy import ndimage
 
 from forestmap_assets.core.exploration import _grid_kernels as kernels
-from forestmap_assets.core.exploration.surface import col_int, voxel_indices
 from forestmap_assets.core.features.elevation import ElevationGrid
 from forestmap_assets.params.men import ExplorationConfig
 
@@ -192,10 +191,11 @@ class ExplorationGrid:
             return self
         for name in ("counts", "measured", "above", "points"):  # the kernel writes into them
             setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float64))
+        col = lambda c: np.ascontiguousarray(surface[c].to_numpy(), dtype=np.int64)  # noqa: E731
         kernels.accumulate_surface(
-            *voxel_indices(surface), col_int(surface, "n_points"), col_int(surface, "n_filled"),
-            float(voxel_m), np.asarray(pose, dtype=np.float64),
-            np.inf if max_range_m is None else float(max_range_m), *self._kernel_grid(),
+            col("ix"), col("iy"), col("iz"), col("n_points"), col("n_filled"), float(voxel_m),
+            np.asarray(pose, dtype=np.float64), np.inf if max_range_m is None else float(max_range_m),
+            *self._kernel_grid(),
             self.counts, self.measured, self.above.reshape(-1), self.points.reshape(-1),
         )  # fmt: skip
         return self

@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.exploration import _grid_kernels as grid_kernels
 from forestmap_assets.core.exploration import _surface_kernels as kernels
 from forestmap_assets.core.exploration.occlusion import (
     boundaries_table,
@@ -18,6 +17,7 @@ from forestmap_assets.core.exploration.occlusion import (
     point_source,
 )
 from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.core.geometry import transform_points
 from forestmap_assets.params.men import OcclusionConfig
 
 SURFACE_COLUMNS = ["ix", "iy", "iz", "n_points", "n_filled"]
@@ -92,16 +92,6 @@ def observed_surface(
     )
 
 
-def col_int(table: pd.DataFrame, name: str) -> np.ndarray:
-    """A column as a contiguous int64 array (what the compiled kernels take)."""
-    return np.ascontiguousarray(table[name].to_numpy(), dtype=np.int64)
-
-
-def voxel_indices(surface: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``ix, iy, iz`` of an observed surface's voxels (:data:`SURFACE_COLUMNS`)."""
-    return col_int(surface, "ix"), col_int(surface, "iy"), col_int(surface, "iz")
-
-
 def surface_points(
     surface: pd.DataFrame,
     voxel_m: float,
@@ -111,12 +101,17 @@ def surface_points(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Voxel centres of an observed surface in the global frame (``pose`` of the scan), with their
     ``n_points`` and ``n_filled``; voxels farther than ``max_range_m`` horizontally from the
-    scanner are left out."""
-    xyz, keep = grid_kernels.surface_xyz(*voxel_indices(surface), float(voxel_m),
-                                         np.asarray(pose, dtype=np.float64),
-                                         np.inf if max_range_m is None else float(max_range_m))
+    scanner are left out (the exploration grid adds a scan's surface in one compiled pass
+    instead, :meth:`.grid.ExplorationGrid.add_surface`)."""
+    ijk = surface[["ix", "iy", "iz"]].to_numpy(np.float64)
+    local = (ijk + 0.5) * voxel_m
+    keep = (
+        np.ones(len(local), bool)
+        if max_range_m is None
+        else np.hypot(local[:, 0], local[:, 1]) <= max_range_m
+    )
     return (
-        xyz[keep],
+        transform_points(local[keep], pose),
         surface["n_points"].to_numpy(np.float64)[keep],
         surface["n_filled"].to_numpy(np.float64)[keep],
     )
