@@ -119,3 +119,25 @@ def test_objective_spread_is_the_model_normal_pose_along_the_baseline(exact_scan
     assert np.all(link["sd"][:2] > campaign["sd"][:2]) and np.array_equal(link["sd"][2:], campaign["sd"][2:])
     assert np.array_equal(campaign["sd"], off["sd"]) and np.isnan(off["spread_along"])
     assert 0.0001 < abs(campaign["spread_along"]) < 0.004
+
+
+def test_fit_guard_compares_with_the_branch_and_bound_fit(exact_scans):
+    """The residual guard holds back a refinement whose fit is more than ``max_fit_loss``
+    (relative) worse than at the branch-and-bound pose, and only then: set just below the
+    change the refinement reached it says "fit worse", just above it the refinement is used."""
+    points, truth = exact_scans
+    s = RefineSettings()
+    clouds = {sid: RefineCloud.from_points(p, s) for sid, p in points.items()}
+    a, b = list(points)[1], list(points)[0]
+    pose = np.asarray(relative_pose(truth.loc[a, ["x", "y", "z", "heading_deg"]].to_numpy(float),
+                                    truth.loc[b, ["x", "y", "z", "heading_deg"]].to_numpy(float)))
+    start = pose + np.array([0.01, -0.005, 0.0, 0.02])  # a coarse pose 1.1 cm and 0.02 deg off
+    res = two_way_refine(clouds[a], clouds[b], start, s)
+    assert res["used"], res["reason"]
+    loss = res["fit_refined_m"] / res["fit_bnb_m"] - 1.0
+    assert loss < 0  # from 1 cm off, the fit improves
+    strict = two_way_refine(clouds[a], clouds[b], start, dataclasses.replace(s, max_fit_loss=loss - 0.002))
+    assert not strict["used"] and strict["reason"].startswith("fit worse"), strict["reason"]
+    lenient = two_way_refine(clouds[a], clouds[b], start, dataclasses.replace(s, max_fit_loss=loss + 0.002))
+    assert lenient["used"], lenient["reason"]
+    assert np.hypot(*(res["pose"][:2] - pose[:2])) < 0.003  # and it moved back to the truth
