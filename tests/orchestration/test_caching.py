@@ -38,6 +38,7 @@ def _run(root):
     return ran
 
 
+@pytest.mark.slow
 def test_template_is_fresh_and_a_rerun_does_nothing(tmp_path, monkeypatch, capsys):
     root = materialised_copy(tmp_path, monkeypatch)
     assert status_lines(root, capsys) == {s: "fresh" for s in ALL}

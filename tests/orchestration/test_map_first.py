@@ -10,6 +10,7 @@ from helpers.orchestration import edit_manifest, materialised_copy
 from forestmap_assets.orchestration.runner import run_campaign
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("workers", [2, 1])
 def test_map_ready_comes_before_next_vantage_points(tmp_path, monkeypatch, workers):
     root = materialised_copy(tmp_path, monkeypatch)

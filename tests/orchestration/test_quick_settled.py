@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 
+import pytest
 import yaml
 from helpers.orchestration import edit_manifest, materialised_copy
 
@@ -20,6 +21,7 @@ def _run(root, capsys) -> str:
     return capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_nothing_to_do_is_recognised_and_anything_changed_is_not(tmp_path, monkeypatch, capsys):
     root = materialised_copy(tmp_path, monkeypatch)
     assert QUICK not in _run(root, capsys)  # writes the outputs, records the quick key

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import base64
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import nbformat
 import pytest
 import yaml
 
-nbclient = pytest.importorskip("nbclient")
+if TYPE_CHECKING:
+    import nbformat
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 
@@ -49,6 +50,11 @@ def materialised(tmp_path_factory):
 
 
 def execute(name: str, folder: Path, env: dict, monkeypatch) -> nbformat.NotebookNode:
+    # imported here, not at collection: nbformat's schema validators take ~6 s to import, and
+    # every test of this module is slow (the quick loop deselects them)
+    import nbformat
+
+    nbclient = pytest.importorskip("nbclient")
     for k, v in {**env, "FORESTMAP_CAMPAIGN": str(folder)}.items():
         monkeypatch.setenv(k, v)
     book = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
