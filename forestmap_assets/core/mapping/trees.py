@@ -304,8 +304,9 @@ def merge_trees(
         ground_seen = bool(np.isfinite(ground[k]))
         # the ground cannot lie above the stem's lowest cylinder end: an annulus whose lowest
         # hits are all crown (a rendered survey: 4.9 m up, the DBH 11.6 cm short) takes that end
-        ground_above = ground_seen and ground[k] > zlo[m].min()
-        g = ground[k] if ground_seen and not ground_above else zlo[m].min()
+        lowest = zlo[m].min()
+        ground_above = ground_seen and ground[k] > lowest
+        g = min(ground[k], lowest) if ground_seen else lowest
         zbh = g + breast_height_m
         sub = cyl[m]
         zb = np.full(m.sum(), zbh)

@@ -19,8 +19,8 @@ own fit rather than because it stays within a box of the coarse sigma:
    ``min_pairs`` nor below ``min_overlap_kept`` of its value at the branch-and-bound pose;
 3. **residuals**: the mean point-to-plane distance of both directions together (within the fine
    radius) must not be worse than at the branch-and-bound pose by more than ``max_fit_loss``
-   (relative, 1.5 %: the least-squares step does not minimise that mean, and on Sylva's surveys
-   refinements that moved the right way ended up to 1.1 % "worse"; those 2-3 % worse were off).
+   (relative; the least-squares step does not minimise that mean, so a refinement that moved
+   the right way can end up slightly "worse": the measured margin is at the parameter).
 
 Each pair's normal is the normalised sum of the two points' normals (``symmetric``; the
 symmetric objective of Rusinkiewicz 2019, :func:`~.point_to_plane.plane_pairs`): with the model's
