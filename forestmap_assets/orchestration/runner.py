@@ -80,8 +80,9 @@ def run_campaign(
     ``stages`` limits the work to those stages and what they read (default: all).
     ``share_namespace``: run a variant folder of a campaign in the original's store namespace on
     purpose (notebook 4); otherwise another folder with the same name is a one-line error.
-    ``idle``: work for a background thread of this process while it waits for the pairs, else
-    once the campaign-level stages start (the CLI imports the libraries of its exports).
+    ``idle``: work for a background thread of this process while it waits for the pairs in
+    worker processes, joined before anything runs here again (the CLI imports the libraries of
+    its exports); not run when nothing waits so.
     ``map_ready``: called once, in this thread, when this session has changed the map (a pair or
     a campaign-level stage ran) and only the where-to-scan-next stages are left (issue 16: they
     never delay the map; the CLI writes the map's files here). Those stages then run beside it
@@ -263,10 +264,17 @@ def _run(
                     progress(f"  {len(pairs)} pairs to register")
                     count_attempts(attempts, pairs)
                     count_attempts(attempts, late)
-                    if idle is not None:  # this process waits for the pairs meanwhile
-                        threading.Thread(target=idle, daemon=True).start()
+                    # the idle work only while this thread waits for the pairs' workers: a
+                    # thread importing libraries beside steps that import them here can see a
+                    # module half initialised (ImportError, matplotlib.colors)
+                    warm = None
+                    if idle is not None and session.runs_in_workers(pairs, late):
+                        warm = threading.Thread(target=idle, daemon=True)
+                        warm.start()
                         idle = None
                     session.run_partitions("pair", pairs, late=late)
+                    if warm is not None:
+                        warm.join()
                     continue
             if map_ready is not None and not pairs and level <= explore and any(
                 s in map_stages for s, _ in summary.ran
@@ -302,9 +310,6 @@ def _run(
             if late and PAIR_LISTS[0] not in stages:  # beside this run, in the workers
                 count_attempts(attempts, late)
                 session.run_partitions("scan", {}, late=late)
-            if idle is not None and PAIR_LISTS[0] not in stages:
-                threading.Thread(target=idle, daemon=True).start()
-                idle = None
             session.execute("campaign", stages, None, 1)
     for stage, scan, _ in summary.failures:
         if scan is not None and materialised_before(instance, campaign, stage, scan):

@@ -233,6 +233,12 @@ class Session:
         """Whether scans' runs can be left running in the session's workers (in_process)."""
         return self.executor == "in_process" and self.workers > 1
 
+    def runs_in_workers(self, todo: dict[str, list[str]], late: dict[str, list[str]] | None = None) -> bool:
+        """Whether :meth:`run_partitions` runs all of ``todo`` in the session's fork-server
+        workers, this thread only waiting (never so with another executor: its workers fork
+        from this process)."""
+        return self.can_run_late and (bool(late) or len(todo) > 1)
+
     def run_partitions(
         self, kind: str, todo: dict[str, list[str]], late: dict[str, list[str]] | None = None
     ) -> None:

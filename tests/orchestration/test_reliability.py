@@ -1,5 +1,6 @@
 """Reliability of runs (issue 6): two runs of one campaign at once leave one consistent store
-with every asset materialised once; a failed run leaves no partial Parquet file. (A corrupt scan
+with every asset materialised once; a failed run leaves no partial Parquet file; the CLI's idle
+work never runs beside steps in this process. (A corrupt scan
 failing only its own partitions: tests/orchestration/test_range_images_asset.py.)"""
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 from helpers.campaign_files import write_campaign
-from helpers.orchestration import materialised_since
+from helpers.orchestration import edit_manifest, materialised_copy, materialised_since
 
 from forestmap_assets.assets.common import asset_key
 from forestmap_assets.io import store
 from forestmap_assets.io.campaign import load_campaign
 from forestmap_assets.orchestration.instance import get_instance
 from forestmap_assets.orchestration.runner import campaign_lock, run_campaign
+from forestmap_assets.orchestration.session import Session
 
 RUN = (
     "import sys, warnings; warnings.filterwarnings('ignore')\n"
@@ -86,3 +88,28 @@ def test_failed_run_leaves_no_partial_parquet(tmp_path, monkeypatch):
     again = run_campaign(root, stages=["range_images"], progress=lambda m: None)
     assert again.failures == [] and sorted(again.ran) == [("range_images", "S"), ("range_images", "T")]
     assert [f.name for f in _files(images)] == ["S.parquet", "T.parquet"]
+
+
+def test_idle_work_only_while_the_pairs_run_in_workers():
+    """Steps that run in this process import libraries; a thread importing the same ones beside
+    them can see a module half initialised (``forestmap run`` on a one-scan campaign failed with
+    ImportError from matplotlib.colors). The idle work waits for the pairs of several workers."""
+    def session(executor, workers):
+        return Session(None, None, executor, "", print, workers, None)
+
+    two, one = {"b__a": ["pairwise_registrations"], "c__a": ["pairwise_registrations"]}, {"b__a": []}
+    assert session("in_process", 2).runs_in_workers(two)
+    assert session("in_process", 2).runs_in_workers(one, late={"a": ["occlusion_boundaries"]})
+    assert not session("in_process", 2).runs_in_workers(one)  # one pair: here
+    assert not session("in_process", 1).runs_in_workers(two)
+    assert not session("multiprocess", 2).runs_in_workers(two)  # forks from this process
+
+
+@pytest.mark.slow
+def test_idle_work_does_not_run_beside_campaign_stages_here(tmp_path, monkeypatch):
+    root = materialised_copy(tmp_path, monkeypatch)
+    edit_manifest(root, params={"mapping": {"residual_sigmas": 2.5}})  # campaign-level stages only
+    called = []
+    summary = run_campaign(root, workers=2, progress=lambda m: None, idle=lambda: called.append(1))
+    assert summary.failures == []
+    assert {s for s, _ in summary.ran} and called == []
