@@ -67,8 +67,11 @@ class RefineSettings:
     beam_exit_m: float = 0.0
     beam_divergence_mrad: float = 0.0
     # x, y 0.09 -> 0.164 with two_way_sd_scale's x, y 0.8 -> 0.44: a wide beam's links keep
-    # their sigmas (its widened silhouettes bias them more than their Hessian shows)
-    beam_sd_share: tuple[float, float, float, float] = (0.164, 0.164, 0.035, 0.11)
+    # their sigmas (its widened silhouettes bias them more than their Hessian shows); z 0.035
+    # -> 0.01: silhouettes widen sideways; the own simulator's scans (3 mrad beam) had z error /
+    # sd 0.13 / 0.41 (circular / realistic stems, 2 surveys each), 0.33 / 0.66 with this and
+    # mapping's refined_scan_correlation (benchmarks/results.md "scan_offsets")
+    beam_sd_share: tuple[float, float, float, float] = (0.164, 0.164, 0.01, 0.11)
     # two-way pairs' normal: the sum of both points' normals (point_to_plane.plane_pairs); None:
     # unless the beam diverges by more than symmetric_max_divergence_mrad (the silhouettes a wide
     # first-return beam widens face their own sensor, and the sum pulled the scans apart: +2-3 mm
