@@ -879,12 +879,16 @@ def backfill(case: dict, rundir: Path) -> dict:
 
 
 def seeds_of(text: str) -> list[int]:
-    return [int(s) for s in text.split(",")] if "," in text else list(range(1, int(text) + 1))
+    """``N``: seeds 1..N; a list ``4,7`` (one seed: ``17,``) or a range ``11-16``."""
+    if "-" in text:
+        lo, hi = (int(v) for v in text.split("-", 1))
+        return list(range(lo, hi + 1))
+    return [int(s) for s in text.split(",") if s] if "," in text else list(range(1, int(text) + 1))
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", default="3", help="Sylva surveys: N (seeds 1..N) or a list 4,7 (default 3)")
+    ap.add_argument("--seeds", default="3", help="Sylva surveys: N (seeds 1..N), a list 4,7 (one seed: 17,) or a range 11-16 (default 3)")
     ap.add_argument("--own-seeds", default="1", help="surveys of forestmap's own simulator, same form (0: none)")
     ap.add_argument("--real-seeds", default="0",
                     help="own-simulator surveys with realistic stems (--stems realistic), same form (0: none)")
