@@ -196,6 +196,12 @@ class RegistrationParams(_Stage):
     likelihood_temperature: float | None = 40.0
     heading_temperature: float | None = 6.0
     ground_min_sd_m: float = 0.002
+    # (inferred, issue 19) the ground grids compare only ground-like cells: within ground_tol_m
+    # of the lowest hit in the ground_block_m square about them (0: every cell; slopes up to
+    # tol / (block / 2) = 43 %). Sylva's pairs 20-25 m apart had ground dz 12-40 cm off at 5-15
+    # sd (core/registration/ground_z.py; benchmarks/results.md "ground_cells")
+    ground_block_m: float = 0.7
+    ground_tol_m: float = 0.15
     feature_z_sd_m: float = 0.15
     # (beyond the thesis, issue 19; core/registration/stem_polish.py) an accepted pose polished by
     # least squares on its matched stem axes, its heading sigma from their scatter times
@@ -373,8 +379,11 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # z error (link noise 0.36 mm) and no number of links averages it out; scans' error / sd
         # z / heading, rendered 1-6 1.40 / 1.16 -> 1.12 / 0.98, Sylva 1-16 0.99 / 0.91 -> 0.82 /
         # 0.76 (benchmarks/results.md "scan_offsets")
+        # z_residual_sigmas 8 -> 5: with the ground-like cells (registration.ground_block_m) the
+        # ground dz's sd holds (pairs' error / sd 0.73); over 29 surveys one link lay beyond 3
+        # sd in z, at 6.9 (Sylva 9 s4-s1: 5 cm off with 1778 cells), and moved its scan 2 mm
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05),
-                    "refined_scan_correlation": (0.1, 0.1, 0.4, 0.15)},
+                    "refined_scan_correlation": (0.1, 0.1, 0.4, 0.15), "z_residual_sigmas": 5.0},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         "registration": {"stem_polish": True},

@@ -5,6 +5,11 @@ z of 0.29 m for ST and RT), while the lowest-hit elevation grids of two levelled
 same ground agree closely. The thesis names elevation maps as a future source for refining
 registration; forestmap does it for z (inferred method, parameters below):
 
+0. each grid keeps its ground-like cells (:func:`ground_cells`): a lowest hit within
+   ``tol_m`` of the lowest in the ``block_m`` square about it. Far from a scanner most cells'
+   lowest hit is a trunk, a branch or undergrowth (at the true pose 1-5 % of the cells 10-15 m
+   from both scanners of a Sylva pair agreed within 8 cm), and the median below then settled on
+   a chance mode 12-40 cm off (issue 19, benchmarks/results.md "ground_cells");
 1. the scan's lowest-hit cells (cell centres, levelled scan frame) are moved into the
    reference frame with the registered (dx, dy, dz, dheading);
 2. each is compared with the reference's lowest hit in the cell it falls in, for cells within
@@ -24,6 +29,26 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.geometry import transform_points
+
+
+def ground_cells(grid: pd.DataFrame | None, cell_m: float, block_m: float = 0.7,
+                 tol_m: float = 0.15) -> pd.DataFrame | None:
+    """The cells of a lowest-hit grid (``ix, iy, z``) whose z lies within ``tol_m`` of the
+    lowest z in the square of ``block_m`` (odd number of cells) centred on it; ``block_m`` 0
+    keeps every cell. Ground sloping by more than ``tol_m / (block_m / 2)`` (43 % with the
+    defaults) loses its cells, and the features' dz stays."""
+    if grid is None or grid.empty or block_m <= 0:
+        return grid
+    from scipy.ndimage import minimum_filter
+
+    ix, iy = grid["ix"].to_numpy(np.int64), grid["iy"].to_numpy(np.int64)
+    z = grid["z"].to_numpy(float)
+    x0, y0 = ix.min(), iy.min()
+    dense = np.full((ix.max() - x0 + 1, iy.max() - y0 + 1), np.inf)
+    dense[ix - x0, iy - y0] = z
+    size = int(round(block_m / cell_m)) | 1
+    low = minimum_filter(dense, size=size, mode="constant", cval=np.inf)[ix - x0, iy - y0]
+    return grid[z - low <= tol_m]
 
 
 @dataclass(frozen=True)

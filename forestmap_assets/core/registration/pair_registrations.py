@@ -289,12 +289,18 @@ def register_candidates(
     Sigmas: :func:`observation_sigmas` with ``sigma_scale`` and ``likelihood_temperature``
     (module docstring).
 
-    With ``params.z_from_ground`` and the scans' lowest-hit ``elevation`` grids, an accepted
+    With ``params.z_from_ground`` and the scans' lowest-hit ``elevation`` grids (their
+    ground-like cells, ``params.ground_block_m`` / ``ground_tol_m``), an accepted
     registration's dz and its sigma come from the ground (:mod:`.ground_z`) when the ground
     agrees with the feature-based dz within ``3 sd + 0.1 m`` (``sd``: the feature dz's sd, its
     cloud sd combined with ``feature_z_sd_m``); the feature-based values are
     kept in ``dz_features``/``sd_z_features`` and ``z_source`` says which was used.
     """
+    if elevation:  # the ground-like cells only (ground_z.ground_cells)
+        from forestmap_assets.core.registration.ground_z import ground_cells
+
+        elevation = {k: ground_cells(g, elevation_cell_m, params.ground_block_m, params.ground_tol_m)
+                     for k, g in elevation.items()}
     jobs = []
     for c in candidates.itertuples(index=False):
         scan = submaps.get(c.scan)
