@@ -118,10 +118,15 @@ def test_ground_cells_keep_the_ground_where_far_cells_see_trunks_and_branches():
     g_s = grid(9.0, dz, 0.9)  # S's cells in the same grid (heading 0, no shift: exact cells)
     pose = (0.0, 0.0, 0.0, 0.0)
     raw = ground_dz(g_s, g_ref, pose, cell, max_range_m=30.0)
-    kept = ground_dz(ground_cells(g_s, cell), ground_cells(g_ref, cell), pose, cell, max_range_m=30.0)
+    kept = ground_dz(ground_cells(g_s, cell, max_range_m=30.0), ground_cells(g_ref, cell, max_range_m=30.0),
+                     pose, cell, max_range_m=30.0)
     assert kept.ok and abs(kept.dz - dz) < 0.01 and kept.sd < 0.01
     assert not raw.ok or abs(raw.dz - dz) > 0.1  # the clutter's chance mode
     # 0.7 m squares keep a 40 % slope; a block of 0 keeps every cell
     steep = pd.DataFrame({"ix": ix, "iy": iy, "z": 0.4 * x})
-    assert len(ground_cells(steep, cell)) == len(steep)
+    assert len(ground_cells(steep, cell, max_range_m=30.0)) == len(steep)
     assert ground_cells(g_s, cell, block_m=0.0) is g_s
+    # only cells the comparison can use (within max_range_m of the scanner) are filtered: a
+    # return 2 km away does not make a dense array of 20000 x 20000 cells
+    far = pd.concat([g_s, pd.DataFrame({"ix": [20000], "iy": [0], "z": [0.0]})], ignore_index=True)
+    assert ground_cells(far, cell)["ix"].max() < 160

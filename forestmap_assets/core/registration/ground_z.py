@@ -30,17 +30,24 @@ import pandas as pd
 
 from forestmap_assets.core.geometry import transform_points
 
+MAX_RANGE_M = 15.0  # cells compared: within this distance of both scanners
+
 
 def ground_cells(grid: pd.DataFrame | None, cell_m: float, block_m: float = 0.7,
-                 tol_m: float = 0.15) -> pd.DataFrame | None:
-    """The cells of a lowest-hit grid (``ix, iy, z``) whose z lies within ``tol_m`` of the
-    lowest z in the square of ``block_m`` (odd number of cells) centred on it; ``block_m`` 0
-    keeps every cell. Ground sloping by more than ``tol_m / (block_m / 2)`` (43 % with the
-    defaults) loses its cells, and the features' dz stays."""
+                 tol_m: float = 0.15, max_range_m: float = MAX_RANGE_M) -> pd.DataFrame | None:
+    """The cells of a lowest-hit grid (``ix, iy, z``, the scanner at the origin) within
+    ``max_range_m`` (+ ``block_m``) of the scanner whose z lies within ``tol_m`` of the lowest z
+    in the square of ``block_m`` (odd number of cells) centred on it; ``block_m`` 0 keeps every
+    cell. Ground sloping by more than ``tol_m / (block_m / 2)`` (43 % with the defaults) loses
+    its cells, and the features' dz stays."""
     if grid is None or grid.empty or block_m <= 0:
         return grid
     from scipy.ndimage import minimum_filter
 
+    reach = (max_range_m + block_m) / cell_m  # a dense array of the near cells only
+    grid = grid[np.hypot(grid["ix"].to_numpy() + 0.5, grid["iy"].to_numpy() + 0.5) <= reach]
+    if grid.empty:
+        return grid
     ix, iy = grid["ix"].to_numpy(np.int64), grid["iy"].to_numpy(np.int64)
     z = grid["z"].to_numpy(float)
     x0, y0 = ix.min(), iy.min()
@@ -68,7 +75,7 @@ def ground_dz(
     pose,
     cell_m: float,
     *,
-    max_range_m: float = 15.0,
+    max_range_m: float = MAX_RANGE_M,
     inlier_m: float = 0.08,
     min_cells: int = 50,
     correlation_cells: float = 25.0,
