@@ -112,7 +112,7 @@ def mapping_assets(campaign: Campaign) -> list:
             poses = poses_table(campaign, sel.solution.poses)
             links = sel.links
             residuals = sel.solution.residuals
-        poses = scale_sd(poses, scale)
+        poses = scale_sd(poses, scale, mp.scale_sd_floor)
         bundle = {"poses": poses, "links": links, "residuals": residuals}
         meta = {
             "objective_scale_mm_per_m": round(1000 * scale, 4),

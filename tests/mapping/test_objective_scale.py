@@ -46,3 +46,8 @@ def test_links_and_scans_take_the_scale_along_their_baselines():
     out = scale_sd(poses, -0.0004)
     np.testing.assert_allclose(out["sd_x"], [0.0, np.hypot(0.002, 0.0048)])
     np.testing.assert_allclose(out["sd_y"], [0.0, np.hypot(0.002, 0.002)])
+    # a floor per metre (mapping.scale_sd_floor) when the objectives show no larger scale
+    floored = scale_sd(poses, 0.0, floor=0.00008)
+    np.testing.assert_allclose(floored["sd_x"], [0.0, np.hypot(0.002, 0.00096)])
+    np.testing.assert_allclose(scale_sd(poses, -0.0004, floor=0.00008)["sd_x"], out["sd_x"])
+    assert scale_sd(poses, 0.0) is poses

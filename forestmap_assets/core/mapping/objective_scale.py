@@ -70,9 +70,11 @@ def widen_links(links: pd.DataFrame, scale: float) -> pd.DataFrame:
     return out
 
 
-def scale_sd(poses: pd.DataFrame, scale: float) -> pd.DataFrame:
+def scale_sd(poses: pd.DataFrame, scale: float, floor: float = 0.0) -> pd.DataFrame:
     """``poses`` (the reference at the origin) with the x, y sigma of a network scale
-    ``scale`` about the reference added in quadrature: ``|scale x|``, ``|scale y|``."""
+    ``scale`` about the reference added in quadrature: ``|scale x|``, ``|scale y|``; at least
+    ``floor`` per metre (a scale that no link shows: ``mapping.scale_sd_floor``)."""
+    scale = max(abs(scale), floor)
     if not scale:
         return poses
     out = poses.copy()
