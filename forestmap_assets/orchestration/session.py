@@ -235,8 +235,8 @@ class Session:
 
     def runs_in_workers(self, todo: dict[str, list[str]], late: dict[str, list[str]] | None = None) -> bool:
         """Whether :meth:`run_partitions` runs all of ``todo`` in the session's fork-server
-        workers, this thread only waiting (never so with another executor: its workers fork
-        from this process)."""
+        workers, this thread only waiting (its first and third branches; never so with another
+        executor: its workers fork from this process)."""
         return self.can_run_late and (bool(late) or len(todo) > 1)
 
     def run_partitions(

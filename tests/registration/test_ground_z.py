@@ -105,7 +105,7 @@ def test_ground_cells_keep_the_ground_where_far_cells_see_trunks_and_branches():
     ix, iy = (a.ravel() for a in np.meshgrid(np.arange(-150, 151), np.arange(-60, 61), indexing="ij"))
     x, y = (ix + 0.5) * cell, (iy + 0.5) * cell
     ground = 0.2 * x + 0.05 * np.sin(y)  # a 20 % slope
-    dz = 0.4  # scan S stands 1.5 m east of the reference and 0.4 m higher in its levelled frame
+    dz = 0.4  # scan S stands 0.4 m higher than the reference (same cells: heading 0, no shift)
 
     def grid(near_x, z_frame, clutter_share):
         far = np.abs(x - near_x) > 6.0
@@ -115,7 +115,7 @@ def test_ground_cells_keep_the_ground_where_far_cells_see_trunks_and_branches():
         return pd.DataFrame({"ix": ix, "iy": iy, "z": z})
 
     g_ref = grid(-9.0, 0.0, 0.9)
-    g_s = grid(9.0, dz, 0.9)  # S's cells in the same grid (heading 0, no shift: exact cells)
+    g_s = grid(9.0, dz, 0.9)
     pose = (0.0, 0.0, 0.0, 0.0)
     raw = ground_dz(g_s, g_ref, pose, cell, max_range_m=30.0)
     kept = ground_dz(ground_cells(g_s, cell, max_range_m=30.0), ground_cells(g_ref, cell, max_range_m=30.0),
