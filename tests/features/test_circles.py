@@ -311,6 +311,10 @@ def test_neighbour_pairs_runs_equal_the_listing():
     assert np.array_equal(fast[0], listed[0]) and np.array_equal(fast[1], listed[1])
     runs = neighbour_pairs(sd, k, compiled=False)  # the numpy runs equal the compiled ones
     assert np.array_equal(runs[0], fast[0]) and np.array_equal(runs[1], fast[1])
+    sd.chain = sd.chain * 7 + 3  # sparse chain ids: the compiled kernel's row cells are per chain
+    sparse = neighbour_pairs(sd, k)
+    assert np.array_equal(sparse[0], fast[0]) and np.array_equal(sparse[1], fast[1])
+    sd.chain = (sd.chain - 3) // 7
     # a segment inside another of its row (ends no longer ascending): the listing answers
     sd.col0[0], sd.col1[0] = 0, 30
     sd.col0[1], sd.col1[1], sd.row[1], sd.chain[1] = 5, 20, sd.row[0], sd.chain[0]

@@ -15,9 +15,8 @@ except ImportError:  # pragma: no cover - numba is a dependency; the numpy listi
 if HAVE_NUMBA:
 
     @njit(cache=True, inline="always")
-    def _first_at_least(a, v, right):  # pragma: no cover - compiled
-        """np.searchsorted(a, v, "right" if right else "left")."""
-        lo, hi = 0, a.size
+    def _first_in(a, lo, hi, v, right):  # pragma: no cover - compiled
+        """np.searchsorted(a[lo:hi], v, "right" if right else "left") + lo."""
         while lo < hi:
             mid = (lo + hi) >> 1
             if a[mid] < v or (right and a[mid] == v):
@@ -26,30 +25,28 @@ if HAVE_NUMBA:
                 hi = mid
         return lo
 
-    @njit(cache=True)
-    def _run(by_c1, by_c0, q, width, c0, c1):  # pragma: no cover - compiled
-        lo = _first_at_least(by_c1, q * width + c0, False)
-        hi = _first_at_least(by_c0, q * width + c1, True)
-        return lo, hi
-
     @njit(cache=True, parallel=True)
-    def nb_neighbour_pairs(by_c1, by_c0, order, key, row, col0, col1, k_rows, nrows,
-                           width):  # pragma: no cover - compiled
-        """Pairs (s, t) of :func:`.segment_neighbours.neighbour_pairs` from its sorted keys:
-        for each s the rows ``row[s] - k .. row[s] + k`` of its chain in turn, each row's run of
-        overlapping segments found by two binary searches and listed by index (so the pairs
+    def nb_neighbour_pairs(c0s, c1s, order, cell_of_row, row_lo, row_hi, chain, run_start, row, col0,
+                           col1, k_rows):  # pragma: no cover - compiled
+        """Pairs (s, t) of :func:`.segment_neighbours.neighbour_pairs`: for each s the rows
+        ``row[s] - k .. row[s] + k`` of its chain in turn. The segments sorted by (chain, row,
+        col0) have their column starts ``c0s`` and ends ``c1s`` (both ascending within a row);
+        a chain's rows ``row_lo .. row_hi`` are the cells ``cell_of_row[chain] + row - row_lo``
+        of ``run_start``, so a row's run of segments is found without a search, and its
+        overlapping ones by two binary searches within the run. Listed by index (so the pairs
         come out sorted by s, then (chain, row), then t, as the numpy listing's lexsort puts
         them). Segments in parallel, each writing its own slice."""
-        n = key.size
+        n = chain.size
         count = np.zeros(n, np.int64)
         for s in prange(n):
             k = k_rows[s]
+            ch = chain[s]
             c = 0
-            for d in range(-k, k + 1):
-                r = row[s] + d
-                if r < 0 or r >= nrows:
-                    continue
-                lo, hi = _run(by_c1, by_c0, key[s] + d, width, col0[s], col1[s])
+            for r in range(max(row[s] - k, row_lo[ch]), min(row[s] + k, row_hi[ch]) + 1):
+                cell = cell_of_row[ch] + r - row_lo[ch]
+                a, b = run_start[cell], run_start[cell + 1]
+                lo = _first_in(c1s, a, b, col0[s], False)
+                hi = _first_in(c0s, lo, b, col1[s], True)
                 c += max(hi - lo, 0)
             count[s] = c
         start = np.zeros(n + 1, np.int64)
@@ -59,20 +56,21 @@ if HAVE_NUMBA:
         pt = np.empty(start[n], np.int64)
         for s in prange(n):
             k = k_rows[s]
+            ch = chain[s]
             m = start[s]
-            for d in range(-k, k + 1):
-                r = row[s] + d
-                if r < 0 or r >= nrows:
-                    continue
-                lo, hi = _run(by_c1, by_c0, key[s] + d, width, col0[s], col1[s])
+            for r in range(max(row[s] - k, row_lo[ch]), min(row[s] + k, row_hi[ch]) + 1):
+                cell = cell_of_row[ch] + r - row_lo[ch]
+                a, b = run_start[cell], run_start[cell + 1]
+                lo = _first_in(c1s, a, b, col0[s], False)
+                hi = _first_in(c0s, lo, b, col1[s], True)
                 m0 = m
-                for a in range(lo, hi):  # the run by index: insertion sort in place (short runs)
-                    v = order[a]
-                    b = m
-                    while b > m0 and pt[b - 1] > v:
-                        pt[b] = pt[b - 1]
-                        b -= 1
-                    pt[b] = v
+                for j in range(lo, hi):  # the run by index: insertion sort in place (short runs)
+                    v = order[j]
+                    i = m
+                    while i > m0 and pt[i - 1] > v:
+                        pt[i] = pt[i - 1]
+                        i -= 1
+                    pt[i] = v
                     ps[m] = s
                     m += 1
         return ps, pt
