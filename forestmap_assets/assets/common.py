@@ -29,7 +29,7 @@ CODE_VERSIONS: dict[str, str] = {
     "range_images": "4",
     "segments": "1",
     "circle_models": "2",
-    "cylinder_segments": "2",
+    "cylinder_segments": "3",
     "line_segments": "1",
     "elevation_maps": "1",
     "submaps": "1",

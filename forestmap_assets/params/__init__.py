@@ -105,6 +105,9 @@ class CylinderParams(_Stage):
     # (inferred) largest angle between a cylinder's centre line and its circles' mean normal;
     # None: the curvature threshold. Drops chains of branch/foliage circles (core/cylinders.py)
     axis_normal_deg: float | None = None
+    # (inferred) walk a chain on into the chain that continues it across scan lines without a
+    # segment, within max_gap_m (step 2c's gap; core/features/cylinders.py, chain_stacks)
+    link_chains: bool = True
 
 
 class LineParams(_Stage):

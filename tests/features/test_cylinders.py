@@ -215,3 +215,33 @@ def test_empty_and_no_return_images_give_well_formed_tables():
             assert all(len(t) == 0 for t in f.values())
             assert dict(f["cylinder_segments"].dtypes.astype(str)) == CYLINDER_COLUMNS
             assert dict(f["circle_models"].dtypes.astype(str)) == CIRCLE_COLUMNS
+
+
+def test_chains_broken_by_lines_without_a_segment_are_walked_as_one():
+    """A thin stem seen from afar: its chain breaks at every scan line without a segment, into
+    pieces shorter than the minimum length. Linked end to end (gaps within max_gap_m, circles
+    overlapping across) they give one cylinder; with ``link_chains`` off none. A chain beside the
+    stem at the same heights, and one above it but 0.3 m aside, stay apart."""
+    pieces = []
+    for k, (z0, z1) in enumerate([(0.0, 0.36), (0.5, 0.86), (1.0, 1.36)]):  # 0.14 m gaps
+        c, n = _straight(z0, z1, axis=(0.02, 0.0, 1.0), base=(15.0, 0.0, 0.0))
+        pieces.append(_circles(c, n, 0.06, chain=10 + 7 * k))
+    beside = _circles(*_straight(0.0, 1.36, base=(15.0, 0.5, 0.0)), 0.06, chain=3)  # its own stem
+    aside = _circles(*_straight(1.5, 1.86, base=(15.3, 0.0, 0.0)), 0.06, chain=50)  # 0.3 m off the axis
+    table = pd.concat([*pieces, beside, aside], ignore_index=True)
+    table["segment_id"] = np.arange(len(table))
+    cyl = assemble_cylinders(table, CylinderParams(min_length_m=0.5))
+    stem = cyl[(cyl["y0"] < 0.25) & (cyl["x0"] < 15.2)]
+    assert len(stem) == 1 and stem["n_circles"].iat[0] == sum(len(p) for p in pieces)
+    assert stem["z0"].iat[0] == pytest.approx(0.0) and stem["z1"].iat[0] == pytest.approx(1.36, abs=0.03)
+    assert ((cyl["y0"] > 0.25) & (cyl["n_circles"] == len(beside))).sum() == 1  # the neighbour stem, whole
+    assert not (cyl["x0"] > 15.2).any()  # the piece 0.3 m aside: 0.36 m long, not linked
+    off = assemble_cylinders(table, CylinderParams(min_length_m=0.5, link_chains=False))
+    assert not ((off["y0"] < 0.25) & (off["x0"] < 15.2)).any()  # every piece too short alone
+    # near a scanner: two pieces side by side continue one piece; no link is unambiguous
+    near = [_circles(*_straight(0.0, 0.36, base=(2.0, 0.0, 0.0)), 0.1, chain=60),
+            _circles(*_straight(0.5, 0.86, base=(2.0, 0.02, 0.0)), 0.1, chain=61),
+            _circles(*_straight(0.5, 0.86, base=(2.0, -0.02, 0.0)), 0.1, chain=62)]
+    cluttered = pd.concat(near, ignore_index=True)
+    cluttered["segment_id"] = np.arange(len(cluttered))
+    assert len(assemble_cylinders(cluttered, CylinderParams(min_length_m=0.5))) == 0
