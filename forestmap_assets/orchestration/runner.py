@@ -232,7 +232,10 @@ def _run(
             due -= blocked
             due -= set(session.pending)  # late scans' runs still going
             # where-to-scan-next stages wait for the pairs' runs, then run beside the campaign's
-            late = partition_work(campaign.scan_ids, late_stages, due, parents, granularity) if session.can_run_late else {}
+            # stages in the workers (``background``); without workers to leave them in (one
+            # worker, another executor) after the map's stages, when nothing else is due
+            late = partition_work(campaign.scan_ids, late_stages, due, parents, granularity)
+            background = late if session.can_run_late else {}
             early = [s for s in scan_stages if s not in late_stages] if late else scan_stages
             scans = partition_work(campaign.scan_ids, early, due, parents, granularity)
             if first:
@@ -263,16 +266,16 @@ def _run(
                 if not level:
                     progress(f"  {len(pairs)} pairs to register")
                     count_attempts(attempts, pairs)
-                    count_attempts(attempts, late)
+                    count_attempts(attempts, background)
                     # the idle work only while this thread waits for the pairs' workers: a
                     # thread importing libraries beside steps that import them here can see a
                     # module half initialised (ImportError, matplotlib.colors)
                     warm = None
-                    if idle is not None and session.runs_in_workers(pairs, late):
+                    if idle is not None and session.runs_in_workers(pairs, background):
                         warm = threading.Thread(target=idle, daemon=True)
                         warm.start()
                         idle = None
-                    session.run_partitions("pair", pairs, late=late)
+                    session.run_partitions("pair", pairs, late=background)
                     if warm is not None:
                         warm.join()
                     continue
@@ -307,9 +310,9 @@ def _run(
             for s in stages:
                 attempts[(s, None)] = attempts.get((s, None), 0) + 1
             progress(f"  campaign: {', '.join(stages)}")
-            if late and PAIR_LISTS[0] not in stages:  # beside this run, in the workers
-                count_attempts(attempts, late)
-                session.run_partitions("scan", {}, late=late)
+            if background and PAIR_LISTS[0] not in stages:  # beside this run, in the workers
+                count_attempts(attempts, background)
+                session.run_partitions("scan", {}, late=background)
             session.execute("campaign", stages, None, 1)
     for stage, scan, _ in summary.failures:
         if scan is not None and materialised_before(instance, campaign, stage, scan):

@@ -32,3 +32,19 @@ def test_map_ready_comes_before_next_vantage_points(tmp_path, monkeypatch, worke
     seen.clear()
     assert run_campaign(root, progress=lambda m: None, map_ready=map_ready).ran == []
     assert seen == []
+
+
+@pytest.mark.slow
+def test_occlusion_boundaries_wait_for_the_map_with_one_worker(tmp_path, monkeypatch):
+    """Without workers to leave them running in, the scans' where-to-scan-next stage runs after
+    the map's stages, not before them (issue 16: it never delays the map)."""
+    root = materialised_copy(tmp_path, monkeypatch)
+    edit_manifest(root, params={"trees": {"dbh_method": "cylinders"}, "occlusion": {"alpha_thr_deg": 6.0}})
+    seen = []
+    summary = run_campaign(root, progress=lambda m: None, workers=1,
+                           map_ready=lambda s: seen.append({stage for stage, _ in s.ran}))
+    assert summary.failures == []
+    assert len(seen) == 1 and "tree_list" in seen[0]
+    assert "occlusion_boundaries" not in seen[0], seen
+    ran = [stage for stage, _ in summary.ran]
+    assert "occlusion_boundaries" in ran and ran.index("tree_list") < ran.index("occlusion_boundaries")
