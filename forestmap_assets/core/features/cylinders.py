@@ -138,7 +138,7 @@ def cylinder_membership(circles: pd.DataFrame, params: CylinderParams | None = N
     idx = np.flatnonzero(valid & np.all(np.isfinite(c), 1) & np.isfinite(rad))
     if idx.size == 0:
         return member
-    if getattr(p, "link_chains", True):
+    if p.link_chains:
         chain = chain.copy()
         chain[idx] = chain_stacks(c[idx], nrm[idx], rad[idx], chain[idx], p.max_gap_m)
     order = idx[np.lexsort((c[idx, 2], chain[idx]))]  # bottom-up within each chain

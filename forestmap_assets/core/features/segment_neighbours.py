@@ -33,7 +33,6 @@ def neighbour_pairs(sd, k_rows: np.ndarray, compiled: bool = True) -> tuple[np.n
     by_c1 = skey * width + c1
     if np.any(np.diff(by_c1) < 0):  # overlapping segments in a row: the plain listing
         return neighbour_pairs_listed(sd, k_rows, key)
-    by_c0 = skey * width + c0
     k_max = int(k_rows.max(initial=-1))
     if k_max < 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -41,6 +40,7 @@ def neighbour_pairs(sd, k_rows: np.ndarray, compiled: bool = True) -> tuple[np.n
         i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)  # noqa: E731
         return nb_neighbour_pairs(i64(c0), i64(c1), i64(order), *_row_cells(sd.chain, sd.row, order),
                                   i64(sd.row), i64(sd.col0), i64(sd.col1), i64(k_rows))
+    by_c0 = skey * width + c0
     offs = np.arange(-k_max, k_max + 1)
     s = np.repeat(np.arange(n), offs.size)
     d = np.tile(offs, n)
