@@ -1,11 +1,13 @@
-"""DBH from the merged breast-height slice against the cylinder DBH (issue 19).
+"""DBH from the merged breast-height slice and the silhouettes' widths against the cylinder
+DBH (issue 19).
 
 For each stem model (``realistic``, ``circular``) and seed: simulate a campaign (default 6
 scans, half resolution), run the pipeline, then compute the tree list of the same integrated
-map and stored range images both ways, ``trees.dbh_method`` ``cylinders`` (the DBH before issue
-19) and ``slice`` (core/mapping/stem_slices.py), and compare with the truth (matched trees,
-``sim.evaluate.dbh_errors``). Prints a table and writes the ``dbh`` section of
-``benchmarks/results.md``.
+map and stored range images three ways: ``trees.dbh_method`` ``cylinders`` (the DBH before
+issue 19), ``slice`` (core/mapping/stem_slices.py) and ``slice`` blended with the silhouettes'
+widths (``trees.calipers``, core/mapping/stem_calipers.py; the simulator names its beam, so a
+run uses them), and compare with the truth (matched trees, ``sim.evaluate.dbh_errors``).
+Prints a table and writes the ``dbh`` section of ``benchmarks/results.md``.
 
     python benchmarks/bench_dbh.py --seeds 1 2 --resolution half --work /tmp/dbh
 """
@@ -24,11 +26,12 @@ import pandas as pd
 from results_md import write_section  # noqa: E402
 
 
-def tree_lists(root: Path) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
-    """Trees of the stored integrated map by cylinders and by slice, and the slice fits."""
+def tree_lists(root: Path) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """Trees of the stored integrated map by cylinders, by slice and by slice with the
+    silhouettes' widths, and the last one's fits."""
     from forestmap_assets.access import load_asset
     from forestmap_assets.core.features.elevation import elevation_from_table
-    from forestmap_assets.core.mapping.stem_slices import merged_slice_dbh
+    from forestmap_assets.core.mapping.stem_calipers import tree_dbh
     from forestmap_assets.core.mapping.trees import merge_trees
     from forestmap_assets.io.campaign import load_campaign
 
@@ -37,12 +40,16 @@ def tree_lists(root: Path) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
     grid = elevation_from_table(im["elevation"])
     cylinders, tree_of = merge_trees(im["cylinders"], grid)
     poses = im["scans"]
-    clouds = {}
+    clouds, images = {}, {}
     for sid in poses["scan"]:
         image = load_asset("range_images", campaign=root, scan=sid)
         clouds[sid] = image.xyz[image.valid]
-    sliced, fits = merged_slice_dbh(cylinders, im["cylinders"], tree_of, clouds, poses, camp.params.trees)
-    return cylinders, sliced, fits
+        images[sid] = image.to_table()
+    tp = camp.params.trees
+    sliced, _ = tree_dbh(cylinders, im["cylinders"], tree_of, clouds, poses, tp.model_copy(update={"calipers": False}))
+    blended, fits = tree_dbh(cylinders, im["cylinders"], tree_of, clouds, poses,
+                             tp.model_copy(update={"calipers": True}), images=images)
+    return cylinders, sliced, blended, fits
 
 
 def run_one(stems: str, seed: int, args, work: Path) -> dict:
@@ -62,20 +69,22 @@ def run_one(stems: str, seed: int, args, work: Path) -> dict:
         return {"stems": stems, "seed": seed, "failed": summary.failures[0][2]}
     seconds = time.perf_counter() - t0
     t0 = time.perf_counter()
-    cyl, sliced, fits = tree_lists(root)
+    cyl, sliced, blended, fits = tree_lists(root)
     slice_seconds = time.perf_counter() - t0
     truth = pd.read_csv(root / "truth" / "trees.csv")
-    old, new = dbh_errors(cyl, truth), dbh_errors(sliced, truth)
-    # the same matched trees for both: those with a DBH either way (the slice keeps every DBH)
-    m_old, m_new = match_trees(cyl, truth), match_trees(sliced, truth)
-    both = m_old["est_dbh_m"].notna() & m_new["est_dbh_m"].notna()
-    e_old = (m_old.loc[both, "est_dbh_m"] - m_old.loc[both, "dbh_m"]).to_numpy(float)
-    e_new = (m_new.loc[both, "est_dbh_m"] - m_new.loc[both, "dbh_m"]).to_numpy(float)
+    old, new = dbh_errors(cyl, truth), dbh_errors(blended, truth)
+    # the same matched trees for all: those with a DBH every way (the slice keeps every DBH)
+    m_old, m_sl, m_new = match_trees(cyl, truth), match_trees(sliced, truth), match_trees(blended, truth)
+    both = m_old["est_dbh_m"].notna() & m_sl["est_dbh_m"].notna() & m_new["est_dbh_m"].notna()
+
+    def err(m):
+        return (m.loc[both, "est_dbh_m"] - m.loc[both, "dbh_m"]).to_numpy(float)
+
     used = fits[fits["reason"] == ""]
     return {"stems": stems, "seed": seed, "seconds": seconds, "slice_seconds": slice_seconds,
             "n": int(both.sum()), "trees": len(cyl), "slice_used": len(used),
-            "fallback": int((fits["reason"] != "").sum() - sliced["dbh_m"].isna().sum()),
-            "err_old": e_old, "err_new": e_new,
+            "calipers": int((fits["caliper_scans"] > 0).sum()),
+            "err_old": err(m_old), "err_slice": err(m_sl), "err_new": err(m_new),
             **{f"{k}_old": v for k, v in old.items()}, **{f"{k}_new": v for k, v in new.items()}}
 
 
@@ -88,12 +97,13 @@ def report(rows: list[dict], args) -> str:
     lines = [
         f"Simulated 40 m plots, {args.scans} scans, {args.resolution} resolution, pipeline run once "
         "per campaign; the tree list of the same integrated map and range images computed with "
-        "`trees.dbh_method: cylinders` (before issue 19) and `slice` (the merged breast-height "
-        "slice, core/mapping/stem_slices.py). Matched trees with a DBH both ways (truth match "
-        "within 0.5 m); bias = mean(estimate - truth). "
-        f"Machine: {platform.machine()}, {os.cpu_count()} cores (shared).",
+        "`trees.dbh_method: cylinders` (before issue 19), `slice` (the merged breast-height "
+        "slice, core/mapping/stem_slices.py) and `slice` blended with the silhouettes' widths "
+        "(`trees.calipers`, core/mapping/stem_calipers.py; a run of these campaigns uses them). "
+        "Matched trees with a DBH every way (truth match within 0.5 m); bias = mean(estimate - "
+        f"truth). Machine: {platform.machine()}, {os.cpu_count()} cores (shared).",
         "",
-        "| stems | seed | matched trees | slice used / trees | DBH RMSE cylinders (cm) | DBH RMSE slice (cm) | bias cylinders (cm) | bias slice (cm) | RMSE trees seen from >= 2 scans, cylinders -> slice (cm) | slice step (s) |",
+        "| stems | seed | matched trees | slice used / with widths / trees | DBH RMSE cylinders (cm) | slice (cm) | slice + widths (cm) | bias cylinders / slice + widths (cm) | RMSE trees seen from >= 2 scans, cylinders -> slice + widths (cm) | DBH step (s) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
@@ -101,17 +111,16 @@ def report(rows: list[dict], args) -> str:
             lines.append(f"| {r['stems']} | {r['seed']} | failed: {r['failed']} ||||||||")
             continue
         lines.append(
-            f"| {r['stems']} | {r['seed']} | {r['n']} | {r['slice_used']}/{r['trees']} | "
-            f"{cm * rmse(r['err_old']):.2f} | **{cm * rmse(r['err_new']):.2f}** | "
-            f"{cm * r['err_old'].mean():+.2f} | {cm * r['err_new'].mean():+.2f} | "
+            f"| {r['stems']} | {r['seed']} | {r['n']} | {r['slice_used']} / {r['calipers']} / {r['trees']} | "
+            f"{cm * rmse(r['err_old']):.2f} | {cm * rmse(r['err_slice']):.2f} | **{cm * rmse(r['err_new']):.2f}** | "
+            f"{cm * r['err_old'].mean():+.2f} / {cm * r['err_new'].mean():+.2f} | "
             f"{cm * r['dbh_rmse_multi_m_old']:.2f} -> {cm * r['dbh_rmse_multi_m_new']:.2f} | "
             f"{r['slice_seconds']:.1f} |")
     for stems in dict.fromkeys(r["stems"] for r in rows if "failed" not in r):
         ok = [r for r in rows if r.get("stems") == stems and "failed" not in r]
-        eo = np.concatenate([r["err_old"] for r in ok])
-        en = np.concatenate([r["err_new"] for r in ok])
-        lines.append(f"| {stems} | all | {eo.size} | | {cm * rmse(eo):.2f} | **{cm * rmse(en):.2f}** | "
-                     f"{cm * eo.mean():+.2f} | {cm * en.mean():+.2f} | | |")
+        eo, es, en = (np.concatenate([r[k] for r in ok]) for k in ("err_old", "err_slice", "err_new"))
+        lines.append(f"| {stems} | all | {eo.size} | | {cm * rmse(eo):.2f} | {cm * rmse(es):.2f} | "
+                     f"**{cm * rmse(en):.2f}** | {cm * eo.mean():+.2f} / {cm * en.mean():+.2f} | | |")
     return "\n".join(lines)
 
 
@@ -129,7 +138,8 @@ def main() -> None:
     body = report(rows, args)
     print(body)
     if not args.no_write:
-        write_section("dbh", "## DBH from the merged breast-height slice (issue 19)\n\n" + body)
+        write_section("dbh", "## DBH from the merged breast-height slice and the silhouettes' widths (issue 19)\n\n"
+                      + body)
 
 
 if __name__ == "__main__":

@@ -190,11 +190,12 @@ def mapping_assets(campaign: Campaign) -> list:
 
     tp = params.trees
     by_slice = tp.dbh_method == "slice"
+    image_cols = ["row", "col", "range_m"] if tp.calipers else []  # the silhouettes' edges
 
     @asset(
         key=key("tree_list"),
         ins={"integrated_map": AssetIn(key=key("integrated_map")),
-             **({"range_images": all_scans(key("range_images"), ["x", "y", "z"])} if by_slice else {})},
+             **({"range_images": all_scans(key("range_images"), ["x", "y", "z"] + image_cols)} if by_slice else {})},
         group_name="map",
         code_version=code_version(campaign, "tree_list"),
         description="One row per physical tree, cylinders of all scans merged: stem position at "
@@ -209,17 +210,20 @@ def mapping_assets(campaign: Campaign) -> list:
     def tree_list(context, integrated_map, **raw):  # raw: {"range_images": ...} with the slice DBH
         grid = elevation_from_table(integrated_map["elevation"])
         trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid)
-        from_slice = 0
+        from_slice = from_calipers = 0
         if by_slice:
-            from forestmap_assets.core.mapping.stem_slices import merged_slice_dbh, slice_clouds
+            from forestmap_assets.core.mapping.stem_calipers import tree_dbh
+            from forestmap_assets.core.mapping.stem_slices import slice_clouds
 
             clouds = slice_clouds(raw.get("range_images") or {}, integrated_map["scans"], trees, tp)
-            trees, fits = merged_slice_dbh(trees, integrated_map["cylinders"], tree_of_cyl, clouds,
-                                           integrated_map["scans"], tp)
+            trees, fits = tree_dbh(trees, integrated_map["cylinders"], tree_of_cyl, clouds, integrated_map["scans"],
+                                   tp, images=raw.get("range_images") if tp.calipers else None)
+            from_calipers = int((fits["caliper_scans"] > 0).sum()) if tp.calipers else 0
             from_slice = int((fits["reason"] == "").sum())
         dbh = trees["dbh_m"].dropna()
         noted = trees["dbh_note"].astype(bool)
         meta = {"trees": len(trees), "with_dbh": int(len(dbh)), "dbh_from_slice": from_slice,
+                "dbh_with_silhouette_widths": from_calipers,
                 "dbh_with_note": int((noted & trees["dbh_m"].notna()).sum()),
                 "median_dbh_m": round(float(dbh.median()), 3) if len(dbh) else 0.0,
                 "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum()),

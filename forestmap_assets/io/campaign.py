@@ -358,7 +358,9 @@ def load_campaign(folder: str | Path) -> Campaign:
     if not isinstance(overrides, dict):
         raise _fail(where, "params: expected a mapping of stage -> {key: value}")
     # the search box and the beam are defaults of their stages' sections; params win
-    for section, values in (("registration", search or {}), ("refine", beam), ("trees", beam)):
+    # a named beam also gives the silhouettes' widths to the DBH (core/mapping/stem_calipers.py)
+    trees_beam = {**beam, "calipers": True} if beam else {}
+    for section, values in (("registration", search or {}), ("refine", beam), ("trees", trees_beam)):
         if values:
             overrides = {**overrides, section: {**values, **(overrides.get(section) or {})}}
     try:

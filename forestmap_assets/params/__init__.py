@@ -289,6 +289,17 @@ class TreeParams(_Stage):
     # "objective_scale")
     beam_exit_m: float = 0.005
     beam_divergence_mrad: float = 0.3
+    # DBH blended with the silhouettes' widths (core/mapping/stem_calipers.py): they need the
+    # beam's footprint, so campaign.yaml's sensor section turns them on when it names the beam
+    calipers: bool = False
+    # the calipers' own error (width quantisation, footprint model): the blend's weight is
+    # s^2 / (s^2 + ref^2) with s the points' scatter about the stems' outlines
+    caliper_noise_ref_m: float = 0.0125
+    caliper_half_height_m: float = 0.3  # silhouettes from 1.3 m -/+ this
+    caliper_min_rows: int = 2  # scan lines a silhouette side needs
+    caliper_width_sd_m: float = 0.008  # a scan's width beyond its pixels' quantisation
+    caliper_max_change: float = 0.5  # a side's distance within 50 % of the tree's radius
+    caliper_edge_step_m: float = 0.3  # the first return beyond an edge lies this much farther
     slice_bin_deg: float = 10.0  # angle bins of the outline fit
     slice_min_points: int = 30
     # circumference with points, else the cylinders: an arc seen from one side (about 120 deg

@@ -64,6 +64,7 @@ class SliceFit:
     rms_m: float
     reason: str = ""
     sd_m: float = float("nan")
+    sigma_m: float = float("nan")  # robust scatter of the points about the outline
 
 
 MAX_SLOPE = 0.3  # lean (dx/dz) of a stem's axis at most
@@ -98,7 +99,7 @@ def _in_band(z: np.ndarray, zbh: np.ndarray, half_height_m: float) -> np.ndarray
     return (z >= zbh.min() - half_height_m) & (z <= zbh.max() + half_height_m)
 
 
-class _StemCells:
+class StemCells:
     """A 2-D grid of ``cell_m`` cells over the stems: each cell near a stem (within its reach
     ``reach`` of the axis ``centre``) holds the height band ``zbh`` +- ``half_height_m`` of the
     stems near it, so a point far from every slice is dropped by one lookup before the k-d tree
@@ -241,18 +242,18 @@ def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float,
             cos_i = np.sqrt(np.clip(1.0 - (lateral / a0) ** 2, 0.0, 1.0))
         if keep.sum() < min_points:
             return _with(none, n_points=int(keep.sum()), reason=f"{int(keep.sum())} points")
+        resid_pts = d[keep] - (a0 + theta[3] * np.cos(2 * psi[keep]) + theta[4] * np.sin(2 * psi[keep]))
+        sigma = max(1.4826 * float(np.median(np.abs(resid_pts - np.median(resid_pts)))), 0.003)
         b = np.minimum(((psi[keep] + np.pi) / (2 * np.pi) * n_bins).astype(int), n_bins - 1)
         mean_d, count = _bin_means(b, d[keep], n_bins)
         filled = count >= 2
         coverage = float(filled.sum() * 360.0 / n_bins)
         if coverage < min_coverage_deg:
-            return _with(none, n_points=int(keep.sum()), coverage_deg=coverage,
+            return _with(none, n_points=int(keep.sum()), coverage_deg=coverage, sigma_m=sigma,
                          reason=f"{coverage:.0f} deg of the circumference seen")
         ang = np.angle(np.bincount(b, np.exp(1j * psi[keep]).real, minlength=n_bins)
                        + 1j * np.bincount(b, np.exp(1j * psi[keep]).imag, minlength=n_bins))[filled]
         A = np.column_stack([np.ones(ang.size), np.cos(ang), np.sin(ang), np.cos(2 * ang), np.sin(2 * ang)])
-        resid_pts = d[keep] - (a0 + theta[3] * np.cos(2 * psi[keep]) + theta[4] * np.sin(2 * psi[keep]))
-        sigma = max(1.4826 * float(np.median(np.abs(resid_pts - np.median(resid_pts)))), 0.003)
         # bin variance: the trimmed mean's noise plus the outline's own relief (bark, flutes)
         W = 1.0 / (sigma**2 / np.maximum(count[filled] * 0.6, 1.0) + outline_sd_m**2)
         lam, prior = np.zeros(5), np.zeros(5)
@@ -275,7 +276,7 @@ def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float,
     sin2 = np.clip(1.0 - cos_i[keep] ** 2, 0.0, 1.0) if sensor_xy is not None else 0.5
     bias = float(np.mean(range_sigma_m**2 * sin2 / (2.0 * a0)))
     return SliceFit(2.0 * (a0 - bias), float(c[0]), float(c[1]), int(keep.sum()), coverage, rms,
-                    sd_m=2.0 * sd)
+                    sd_m=2.0 * sd, sigma_m=sigma)
 
 
 def _with(fit: SliceFit, **changes) -> SliceFit:
@@ -308,7 +309,7 @@ def slice_dbhs(trees: pd.DataFrame, slices: pd.DataFrame, sensors: np.ndarray, *
         if not reason and abs(fit.dbh_m - old) > max_change * old:
             reason = f"slice DBH {fit.dbh_m * 100:.1f} cm too far from the cylinders'"
         rows.append((out["tree_id"].iat[i], fit.dbh_m, old, fit.sd_m, fit.n_points, fit.coverage_deg, fit.rms_m,
-                     reason))
+                     fit.sigma_m, reason))
         if not np.isfinite(old):
             continue
         ground = [p for p in notes[i].split("; ") if p.startswith("ground under the stem not seen")]
@@ -320,7 +321,7 @@ def slice_dbhs(trees: pd.DataFrame, slices: pd.DataFrame, sensors: np.ndarray, *
     out["dbh_m"] = dbh
     out["dbh_note"] = notes
     fits = pd.DataFrame(rows, columns=["tree_id", "dbh_slice_m", "dbh_cylinders_m", "sd_m", "n_points",
-                                       "coverage_deg", "rms_m", "reason"])
+                                       "coverage_deg", "rms_m", "sigma_m", "reason"])
     return out, fits
 
 
@@ -329,7 +330,7 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
     """The levelled points (n, 3) of each placed scan's table (columns ``x, y, z``, scanner
     frame) that may lie in a breast-height slice of ``trees``: within the slice's height band
     and gate (:func:`gather_slices`, any lean up to ``MAX_SLOPE``) of a stem, found with the
-    stems' cells (:class:`_StemCells`) in the scan's own frame, so that :func:`gather_slices`
+    stems' cells (:class:`StemCells`) in the scan's own frame, so that :func:`gather_slices`
     keeps the same points: a scan's full cloud is several times larger than the slices."""
     zbh = trees["z"].to_numpy(float) + breast_height_m
     if not len(zbh):
@@ -345,11 +346,23 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
             continue
         x, y, z, h = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
         local = (centre - (x, y)) @ rot_z(h)[:2, :2]  # the stems in the scan's frame: R^T (p - t)
-        cells = _StemCells(local, zbh - z, reach, half)
+        cells = StemCells(local, zbh - z, reach, half)
         cols = [tbl.column(a).to_numpy() for a in "xyz"]
         near = cells.near(*cols)
         out[sid] = np.column_stack([a[near] for a in cols])
     return out
+
+
+def slice_stems(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
+                breast_height_m: float = 1.3) -> pd.DataFrame:
+    """The stems' slices of the tree list ``trees`` (``tree_of_cyl`` over the global cylinders
+    ``cyl``): ``x, y`` (axis at breast height), ``zbh`` (global z of breast height),
+    ``radius_m`` (the cylinders', 0 where none) and the axis's lean ``slope_x, slope_y``."""
+    zbh = trees["z"].to_numpy(float) + breast_height_m
+    slopes = axis_slopes(cyl, tree_of_cyl, len(trees), z_max=zbh + 2.0)
+    return pd.DataFrame({"x": trees["x"].to_numpy(float), "y": trees["y"].to_numpy(float), "zbh": zbh,
+                         "radius_m": np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0),
+                         "slope_x": slopes[:, 0], "slope_y": slopes[:, 1]})
 
 
 def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
@@ -360,11 +373,7 @@ def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.nda
     the registered scans' levelled points ``clouds`` placed with ``poses``; ``tp`` is the tree
     parameter section (``params.TreeParams``). Returns the trees and the per-tree fits of
     :func:`slice_dbhs`."""
-    zbh = trees["z"].to_numpy(float) + breast_height_m
-    slopes = axis_slopes(cyl, tree_of_cyl, len(trees), z_max=zbh + 2.0)
-    stems = pd.DataFrame({"x": trees["x"].to_numpy(float), "y": trees["y"].to_numpy(float), "zbh": zbh,
-                          "radius_m": np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0),
-                          "slope_x": slopes[:, 0], "slope_y": slopes[:, 1]})
+    stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
     slices, sensors = gather_slices(clouds, poses, stems, half_height_m=tp.slice_half_height_m,
                                     gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
     return slice_dbhs(trees, slices, sensors, max_change=tp.slice_max_change,

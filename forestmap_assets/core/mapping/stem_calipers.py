@@ -1,0 +1,242 @@
+"""DBH from the widths of the stems' silhouettes (issue 19, inferred).
+
+A scanner whose ranges are noisy (the thesis scanner: 2.5 cm, spec Table 6.1) still measures
+angles finely. In each scan line the bearings of a stem's outermost pixels fix the two tangent
+lines from the scanner to its section, and their distances from the axis add up to the
+section's width across the line of sight. Averaged over directions, the widths of an
+out-of-round section give its girth / pi (Cauchy's formula); the curvature of a one-sided arc,
+which the circle models and the slice's outline fit see, can be 15-25 % off the mean radius.
+
+Per scan, stem and scan line (rows of the range image in the breast-height slice,
+:mod:`.stem_slices`' gate):
+
+1. the stem's outermost pixel on each side is a silhouette edge when the first return beyond
+   it in that line (within ``look_m`` across) is farther by more than ``edge_step_m``, or there
+   is none; a nearer return (an occluder) voids it;
+2. the tangent's distance from the axis is ``D sin(|beta| + step / 2) - f(r)``: ``D`` the
+   axis's distance from the scanner, ``beta`` the pixel's bearing from the axis direction,
+   ``step`` the image's azimuth step (the true edge lies on average half a step beyond the
+   last pixel that hit), ``f(r) = (beam_exit + divergence r) / 2`` the footprint radius at the
+   edge's range (a first-return beam returns the stem while any part of its footprint touches
+   it, spec 1.1), so the silhouette needs the campaign's beam (``sensor`` in campaign.yaml);
+3. a side's distance is the median over its lines (at least ``min_rows`` lines), kept within
+   ``max_change`` (share) of the tree's radius; a scan with both sides gives a width, and a
+   tree's caliper DBH is the mean of its scans' widths.
+
+:func:`blend_calipers` mixes that DBH with the outline's or the cylinders' (``weight``:
+their point noise against the calipers' own). Simulated plots: ``benchmarks/results.md``,
+section "DBH from silhouette widths".
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+from forestmap_assets.core.geometry import rot_z, transform_points
+from forestmap_assets.core.mapping.stem_slices import (
+    MAX_SLOPE,
+    StemCells,
+    merged_slice_dbh,
+    slice_stems,
+)
+
+if TYPE_CHECKING:
+    import pyarrow as pa
+
+EDGE_COLUMNS = ["tree", "scan", "side", "row", "h_m", "range_m", "quantum_m", "alpha"]
+EDGE_COLUMNS_NEEDED = ["row", "col", "range_m", "x", "y", "z"]
+MAX_LOOK_PIXELS = 64
+
+
+def _azimuth_step(tbl: pa.Table) -> tuple[float, int, int]:
+    """Azimuth step (rad), column count and column direction (+1: azimuth grows with the
+    column) of a stored range image (its ``azimuth_deg`` metadata)."""
+    az = np.asarray(json.loads((tbl.schema.metadata or {})[b"azimuth_deg"]), np.float64)
+    if az.size < 2:
+        return float("nan"), int(az.size), 1
+    return float(np.radians(np.median(np.abs(np.diff(az))))), int(az.size), 1 if az[-1] >= az[0] else -1
+
+
+def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, half_height_m: float,
+                     reach_m: np.ndarray, beam_exit_m: float, beam_divergence_rad: float,
+                     edge_step_m: float = 0.3, look_m: float = 0.3, min_pixels: int = 3,
+                     candidates: np.ndarray | None = None) -> pd.DataFrame:
+    """Silhouette edges (``EDGE_COLUMNS`` less ``scan``) of the ``stems`` (``x, y, zbh,
+    slope_x, slope_y``, global frame) in one scan's range image ``tbl`` (``EDGE_COLUMNS_NEEDED``
+    and the image's azimuths) placed with ``pose`` (x, y, z, heading_deg): per stem, scan line
+    and side (+1: larger bearing) the tangent's distance ``h_m`` from the axis, for the edges
+    that pass step 1 of the module docstring. ``candidates``: the only rows of ``tbl`` that may
+    lie in a slice (:class:`~.stem_slices.StemCells`); None: all."""
+    empty = pd.DataFrame({c: pd.Series(dtype="float64") for c in EDGE_COLUMNS if c != "scan"})
+    step, n_cols, col_dir = _azimuth_step(tbl)
+    if not len(stems) or tbl.num_rows == 0 or not np.isfinite(step) or step <= 0:
+        return empty
+    row, col = tbl.column("row").to_numpy(), tbl.column("col").to_numpy()
+    rng = tbl.column("range_m").to_numpy()
+    zbh = stems["zbh"].to_numpy(float)
+    if candidates is None:
+        z = tbl.column("z").to_numpy().astype(np.float64) + pose[2]
+        candidates = np.flatnonzero((z >= zbh.min() - half_height_m) & (z <= zbh.max() + half_height_m))
+    idx = np.asarray(candidates, np.int64)
+    if not idx.size:
+        return empty
+    xyz = np.column_stack([tbl.column(a).to_numpy()[idx] for a in "xyz"]).astype(np.float64)
+    p = transform_points(xyz, pose)
+    centre = stems[["x", "y"]].to_numpy(float)
+    slope = stems[["slope_x", "slope_y"]].to_numpy(float)
+    _, k = cKDTree(centre).query(p[:, :2], distance_upper_bound=float(np.max(reach_m)) + 0.1)
+    hit = k < len(centre)
+    idx, p, k = idx[hit], p[hit], k[hit]
+    dz = p[:, 2] - zbh[k]
+    axis = centre[k] + slope[k] * dz[:, None]
+    keep = (np.abs(dz) <= half_height_m) & (np.hypot(*(p[:, :2] - axis).T) <= reach_m[k])
+    idx, p, k, axis = idx[keep], p[keep], k[keep], axis[keep]
+    if not idx.size:
+        return empty
+    sensor = np.asarray(pose[:2], np.float64)
+    to_axis = axis - sensor
+    dist = np.hypot(*to_axis.T)
+    bearing = np.angle(np.exp(1j * (np.arctan2(p[:, 1] - sensor[1], p[:, 0] - sensor[0])
+                                    - np.arctan2(to_axis[:, 1], to_axis[:, 0]))))
+    # per (stem, line): the pixels in bearing order; its first and last are the two edges
+    n_rows = int(row.max()) + 1
+    group = k * n_rows + row[idx]
+    order = np.lexsort((bearing, group))
+    g = group[order]
+    start = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    count = np.diff(np.r_[start, g.size])
+    start, count = start[count >= min_pixels], count[count >= min_pixels]
+    if not start.size:
+        return empty
+    ends = np.concatenate([order[start], order[start + count - 1]])
+    side = np.repeat([-1, 1], start.size)
+    # the returns beyond each edge along its line: the first one decides (step 1)
+    image = np.full((n_rows, n_cols), np.inf, np.float32)
+    image[row, col] = rng
+    e_row, e_col = row[idx[ends]].astype(np.int64), col[idx[ends]].astype(np.int64)
+    e_rng = rng[idx[ends]].astype(np.float64)
+    span = np.clip(np.ceil(look_m / np.maximum(e_rng * step, 1e-6)), 1, MAX_LOOK_PIXELS).astype(int)
+    ahead = np.arange(1, MAX_LOOK_PIXELS + 1)
+    cols = e_col[:, None] + (side * col_dir)[:, None] * ahead[None]
+    # an image short of the full circle ends at its first and last column: nothing is known
+    # beyond them, so an edge there (a stem cut by the field of view) is no silhouette
+    full_circle = abs(n_cols * step - 2 * np.pi) < 1.5 * step
+    outside = ((cols < 0) | (cols >= n_cols)) & (ahead[None] <= span[:, None])
+    cols %= n_cols
+    beyond = np.where(ahead[None] <= span[:, None], image[e_row[:, None], cols], np.inf)
+    first = np.where(np.isfinite(beyond).any(1), beyond[np.arange(len(ends)), np.argmax(np.isfinite(beyond), 1)], np.inf)
+    clear = (first > e_rng + edge_step_m) & (full_circle | ~outside.any(1))
+    footprint = 0.5 * (beam_exit_m + beam_divergence_rad * e_rng)
+    h = dist[ends] * np.sin(np.abs(bearing[ends]) + 0.5 * step) - footprint
+    return pd.DataFrame({"tree": k[ends][clear], "side": side[clear], "row": e_row[clear],
+                         "h_m": h[clear], "range_m": e_rng[clear], "quantum_m": (dist[ends] * step)[clear],
+                         "alpha": (np.abs(bearing[ends]) + 0.5 * step)[clear]})
+
+
+def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
+                max_change: float = 0.5, width_sd_m: float = 0.008) -> pd.DataFrame:
+    """Each tree's caliper DBH (``tree, caliper_dbh_m, caliper_sd_m, n_scans``) from the
+    silhouette edges of all scans (``EDGE_COLUMNS``; step 3 of the module docstring): the
+    scans' widths weighted by their precision (the pixel across at the edge, ``quantum_m``,
+    and ``width_sd_m`` for the footprint's model and the section's own widths);
+    ``radius_m`` (trees,) the trees' current radii."""
+    cols = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"]
+    if edges.empty:
+        return pd.DataFrame({c: pd.Series(dtype="float64") for c in cols})
+    key = ["tree", "scan", "side"]
+    med = edges.groupby(key)["h_m"].transform("median")
+    # the mean of the lines within a pixel of the side's median: a leaning or rough stem's edge
+    # crosses pixels from line to line, so the mean resolves what one line cannot
+    near = np.abs(edges["h_m"] - med) <= edges["quantum_m"]
+    sides = edges[near.to_numpy()].groupby(key).agg(median=("h_m", "mean"), size=("h_m", "size"),
+                                                    quantum=("quantum_m", "median")).reset_index()
+    r = radius_m[sides["tree"].to_numpy(int)]
+    ok = (sides["size"] >= min_rows) & (np.abs(sides["median"] - r) <= max_change * r)
+    sides = sides[ok.to_numpy()]
+    both = sides.groupby(["tree", "scan"]).agg(width=("median", "sum"), n=("side", "size"),
+                                               quantum=("quantum", "max")).reset_index()
+    both = both[both["n"] == 2]
+    # a width's variance: each side's edge uniform within one pixel across, plus width_sd_m
+    both["w"] = 1.0 / (both["quantum"] ** 2 / 6.0 + width_sd_m**2)
+    both["wx"] = both["w"] * both["width"]
+    out = both.groupby("tree").agg(wx=("wx", "sum"), w=("w", "sum"), n_scans=("w", "size")).reset_index()
+    out["caliper_dbh_m"] = out["wx"] / out["w"]
+    out["caliper_sd_m"] = np.sqrt(1.0 / out["w"])
+    return out[cols]
+
+
+def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp) -> pd.DataFrame:
+    """:func:`caliper_dbh` of ``stems`` (``x, y, zbh, radius_m, slope_x, slope_y``, global
+    frame; rows are the trees) over every placed scan's range image in ``tables``; ``tp`` the
+    tree parameter section (``params.TreeParams``)."""
+    radius = np.nan_to_num(stems["radius_m"].to_numpy(float), nan=0.0)
+    reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m
+    half = tp.caliper_half_height_m
+    centre, zbh = stems[["x", "y"]].to_numpy(float), stems["zbh"].to_numpy(float)
+    placed = poses.assign(scan=poses["scan"].astype(str)).set_index("scan")
+    parts = []
+    for sid, tbl in tables.items():
+        if not len(stems) or sid not in placed.index or not set(EDGE_COLUMNS_NEEDED) <= set(tbl.column_names):
+            continue
+        pose = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
+        local = (centre - pose[:2]) @ rot_z(pose[3])[:2, :2]  # the stems in the scan's frame
+        cells = StemCells(local, zbh - pose[2], reach + MAX_SLOPE * half, half)
+        near = cells.near(*(tbl.column(a).to_numpy() for a in "xyz"))
+        e = silhouette_edges(tbl, pose, stems, half_height_m=half, reach_m=reach, candidates=near,
+                             beam_exit_m=tp.beam_exit_m, beam_divergence_rad=1e-3 * tp.beam_divergence_mrad,
+                             edge_step_m=tp.caliper_edge_step_m)
+        parts.append(e.assign(scan=sid))
+    edges = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=EDGE_COLUMNS)
+    return caliper_dbh(edges, radius, min_rows=tp.caliper_min_rows, max_change=tp.caliper_max_change,
+                       width_sd_m=tp.caliper_width_sd_m)
+
+
+def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, noise_ref_m: float) -> tuple[pd.DataFrame, float]:
+    """``trees`` with ``dbh_m = (1 - w) dbh_m + w caliper`` where a tree has a caliper DBH,
+    ``w = s^2 / (s^2 + noise_ref_m^2)``: ``s`` (``noise_m``) the points' scatter about the
+    stems' outlines, which limits the outline and the cylinders, against ``noise_ref_m``, the
+    calipers' own error (the widths' quantisation and the footprint's model). Returns the trees
+    and ``w``."""
+    out = trees.copy()
+    if calipers.empty or not np.isfinite(noise_m) or noise_m <= 0:
+        return out, 0.0
+    w = float(noise_m**2 / (noise_m**2 + noise_ref_m**2))
+    rows = calipers["tree"].to_numpy(int)
+    dbh = out["dbh_m"].to_numpy(float).copy()
+    has = np.isfinite(dbh[rows])
+    dbh[rows[has]] = (1 - w) * dbh[rows[has]] + w * calipers["caliper_dbh_m"].to_numpy(float)[has]
+    out["dbh_m"] = dbh
+    return out, w
+
+
+def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, clouds: Mapping[str, np.ndarray],
+             poses: pd.DataFrame, tp, images: Mapping[str, pa.Table] | None = None,
+             breast_height_m: float = 1.3) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The trees' DBH from the merged slices (:func:`~.stem_slices.merged_slice_dbh`, same
+    arguments), blended with the silhouettes' widths when ``tp.calipers`` and the scans' range
+    images ``images`` (``EDGE_COLUMNS_NEEDED``) are given. The fits gain ``caliper_dbh_m,
+    caliper_sd_m, caliper_scans``; a blended tree's ``dbh_note`` says so."""
+    out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m)
+    fits["caliper_dbh_m"], fits["caliper_sd_m"], fits["caliper_scans"] = np.nan, np.nan, 0
+    if not (tp.calipers and images):
+        return out, fits
+    calipers = tree_calipers(images, poses, slice_stems(trees, cyl, tree_of_cyl, breast_height_m), tp)
+    noise = float(np.nanmedian(fits["sigma_m"])) if fits["sigma_m"].notna().any() else float("nan")
+    out, weight = blend_calipers(out, calipers, noise, tp.caliper_noise_ref_m)
+    rows = fits.index[calipers["tree"].to_numpy(int)]
+    for col, src in (("caliper_dbh_m", "caliper_dbh_m"), ("caliper_sd_m", "caliper_sd_m"), ("caliper_scans", "n_scans")):
+        fits.loc[rows, col] = calipers[src].to_numpy()
+    if weight > 0:
+        notes = out["dbh_note"].astype(str).to_numpy(object)
+        for i, k in zip(calipers["tree"].to_numpy(int), calipers["n_scans"].to_numpy(int), strict=True):
+            if np.isfinite(out["dbh_m"].iat[i]):
+                part = f"{weight:.0%} from the silhouette widths of {k} scan{'s' if k > 1 else ''}"
+                notes[i] = f"{notes[i]}; {part}" if notes[i] else part
+        out["dbh_note"] = notes
+    return out, fits
