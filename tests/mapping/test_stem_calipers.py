@@ -105,7 +105,7 @@ def test_caliper_dbh_weights_and_guards():
     edges = pd.DataFrame({
         "tree": [0] * 8, "scan": ["A"] * 4 + ["B"] * 4, "side": [-1, -1, 1, 1] * 2, "row": [0, 1] * 4,
         "h_m": [0.10, 0.10, 0.11, 0.11, 0.105, 0.105, 0.105, 0.105],
-        "range_m": [10.0] * 8, "quantum_m": [0.01] * 4 + [0.04] * 4, "alpha": [0.01] * 8})
+        "range_m": [10.0] * 8, "quantum_m": [0.01] * 4 + [0.04] * 4})
     cal = caliper_dbh(edges, np.array([0.1]), width_sd_m=0.0)
     # A (0.21 m, pixels of 1 cm) weighs 16 times B (0.21 m as well here)
     assert cal["caliper_dbh_m"].iat[0] == pytest.approx(0.21)

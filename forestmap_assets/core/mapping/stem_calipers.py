@@ -7,24 +7,26 @@ section's width across the line of sight. Averaged over directions, the widths o
 out-of-round section give its girth / pi (Cauchy's formula); the curvature of a one-sided arc,
 which the circle models and the slice's outline fit see, can be 15-25 % off the mean radius.
 
-Per scan, stem and scan line (rows of the range image in the breast-height slice,
-:mod:`.stem_slices`' gate):
+Per scan, stem and scan line (rows of the range image within ``caliper_half_height_m`` of
+breast height, inside :mod:`.stem_slices`' gate):
 
 1. the stem's outermost pixel on each side is a silhouette edge when the first return beyond
    it in that line (within ``look_m`` across) is farther by more than ``edge_step_m``, or there
-   is none; a nearer return (an occluder) voids it;
+   is none; a nearer return (an occluder), or the end of an image short of the full circle,
+   voids it;
 2. the tangent's distance from the axis is ``D sin(|beta| + step / 2) - f(r)``: ``D`` the
    axis's distance from the scanner, ``beta`` the pixel's bearing from the axis direction,
    ``step`` the image's azimuth step (the true edge lies on average half a step beyond the
    last pixel that hit), ``f(r) = (beam_exit + divergence r) / 2`` the footprint radius at the
    edge's range (a first-return beam returns the stem while any part of its footprint touches
    it, spec 1.1), so the silhouette needs the campaign's beam (``sensor`` in campaign.yaml);
-3. a side's distance is the median over its lines (at least ``min_rows`` lines), kept within
+3. a side's distance is the mean over its lines within a pixel of their median (at least
+   ``min_rows`` lines; a leaning, rough stem's edge crosses pixels from line to line), kept within
    ``max_change`` (share) of the tree's radius; a scan with both sides gives a width, and a
-   tree's caliper DBH is the mean of its scans' widths.
+   tree's caliper DBH is the mean of its scans' widths, weighted by their pixels' size.
 
-:func:`blend_calipers` mixes that DBH with the outline's or the cylinders' (``weight``:
-their point noise against the calipers' own). Simulated plots: ``benchmarks/results.md``,
+:func:`blend_calipers` mixes that DBH with the outline's or the cylinders' (weight: the
+points' scatter about the outlines against the calipers' own error). Simulated plots: ``benchmarks/results.md``,
 section "DBH from silhouette widths".
 """
 
@@ -49,7 +51,7 @@ from forestmap_assets.core.mapping.stem_slices import (
 if TYPE_CHECKING:
     import pyarrow as pa
 
-EDGE_COLUMNS = ["tree", "scan", "side", "row", "h_m", "range_m", "quantum_m", "alpha"]
+EDGE_COLUMNS = ["tree", "scan", "side", "row", "h_m", "range_m", "quantum_m"]
 EDGE_COLUMNS_NEEDED = ["row", "col", "range_m", "x", "y", "z"]
 MAX_LOOK_PIXELS = 64
 
@@ -135,8 +137,7 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
     footprint = 0.5 * (beam_exit_m + beam_divergence_rad * e_rng)
     h = dist[ends] * np.sin(np.abs(bearing[ends]) + 0.5 * step) - footprint
     return pd.DataFrame({"tree": k[ends][clear], "side": side[clear], "row": e_row[clear],
-                         "h_m": h[clear], "range_m": e_rng[clear], "quantum_m": (dist[ends] * step)[clear],
-                         "alpha": (np.abs(bearing[ends]) + 0.5 * step)[clear]})
+                         "h_m": h[clear], "range_m": e_rng[clear], "quantum_m": (dist[ends] * step)[clear]})
 
 
 def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
@@ -154,12 +155,12 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     # the mean of the lines within a pixel of the side's median: a leaning or rough stem's edge
     # crosses pixels from line to line, so the mean resolves what one line cannot
     near = np.abs(edges["h_m"] - med) <= edges["quantum_m"]
-    sides = edges[near.to_numpy()].groupby(key).agg(median=("h_m", "mean"), size=("h_m", "size"),
+    sides = edges[near.to_numpy()].groupby(key).agg(h=("h_m", "mean"), size=("h_m", "size"),
                                                     quantum=("quantum_m", "median")).reset_index()
     r = radius_m[sides["tree"].to_numpy(int)]
-    ok = (sides["size"] >= min_rows) & (np.abs(sides["median"] - r) <= max_change * r)
+    ok = (sides["size"] >= min_rows) & (np.abs(sides["h"] - r) <= max_change * r)
     sides = sides[ok.to_numpy()]
-    both = sides.groupby(["tree", "scan"]).agg(width=("median", "sum"), n=("side", "size"),
+    both = sides.groupby(["tree", "scan"]).agg(width=("h", "sum"), n=("side", "size"),
                                                quantum=("quantum", "max")).reset_index()
     both = both[both["n"] == 2]
     # a width's variance: each side's edge uniform within one pixel across, plus width_sd_m
