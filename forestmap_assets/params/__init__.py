@@ -298,7 +298,9 @@ class TreeParams(_Stage):
     caliper_half_height_m: float = 0.3  # silhouettes from 1.3 m -/+ this
     caliper_min_rows: int = 2  # scan lines a silhouette side needs
     caliper_width_sd_m: float = 0.008  # a scan's width beyond its pixels' quantisation
-    caliper_max_change: float = 0.5  # a side's distance within 50 % of the tree's radius
+    # a side's distance within these shares of the cylinders' radius (partial arcs can make that
+    # radius far too small; a side at half of it is a stem cut by an occluder)
+    caliper_radius_range: tuple[float, float] = (0.5, 2.0)
     caliper_edge_step_m: float = 0.3  # the first return beyond an edge lies this much farther
     slice_bin_deg: float = 10.0  # angle bins of the outline fit
     slice_min_points: int = 30

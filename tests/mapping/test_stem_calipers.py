@@ -113,7 +113,9 @@ def test_caliper_dbh_weights_and_guards():
     cal = caliper_dbh(edges, np.array([0.1]), width_sd_m=0.0)
     assert cal["caliper_dbh_m"].iat[0] == pytest.approx((16 * 0.21 + 0.25) / 17)
     assert caliper_dbh(edges, np.array([0.1]), min_rows=3).empty
-    assert caliper_dbh(edges, np.array([0.2]), max_change=0.3).empty
+    assert caliper_dbh(edges, np.array([0.3]), radius_range=(0.5, 2.0)).empty  # sides below half
+    assert caliper_dbh(edges, np.array([0.05]), radius_range=(0.5, 2.0)).empty  # above twice
+    assert len(caliper_dbh(edges, np.array([0.06]), radius_range=(0.5, 2.0))) == 1  # a cylinder 45 % small
 
 
 def test_blend_weight_follows_the_points_scatter():

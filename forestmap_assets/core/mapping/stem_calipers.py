@@ -22,7 +22,7 @@ breast height, inside :mod:`.stem_slices`' gate):
    it, spec 1.1), so the silhouette needs the campaign's beam (``sensor`` in campaign.yaml);
 3. a side's distance is the mean over its lines within a pixel of their median (at least
    ``min_rows`` lines; a leaning, rough stem's edge crosses pixels from line to line), kept within
-   ``max_change`` (share) of the tree's radius; a scan with both sides gives a width, and a
+   ``radius_range`` (shares) of the tree's radius; a scan with both sides gives a width, and a
    tree's caliper DBH is the mean of its scans' widths, weighted by their pixels' size.
 
 :func:`blend_calipers` mixes that DBH with the outline's or the cylinders' (weight: the
@@ -141,12 +141,14 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
 
 
 def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
-                max_change: float = 0.5, width_sd_m: float = 0.008) -> pd.DataFrame:
+                radius_range: tuple[float, float] = (0.5, 2.0), width_sd_m: float = 0.008) -> pd.DataFrame:
     """Each tree's caliper DBH (``tree, caliper_dbh_m, caliper_sd_m, n_scans``) from the
     silhouette edges of all scans (``EDGE_COLUMNS``; step 3 of the module docstring): the
     scans' widths weighted by their precision (the pixel across at the edge, ``quantum_m``,
     and ``width_sd_m`` for the footprint's model and the section's own widths);
-    ``radius_m`` (trees,) the trees' current radii."""
+    ``radius_m`` (trees,) the trees' current radii, of which a side's distance must lie within
+    ``radius_range`` (shares: the cylinders' radius may be far too small where partial arcs made
+    it, but a side at half of it is a stem cut by an occluder the edge test missed)."""
     cols = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"]
     if edges.empty:
         return pd.DataFrame({c: pd.Series(dtype="float64") for c in cols})
@@ -158,7 +160,7 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     sides = edges[near.to_numpy()].groupby(key).agg(h=("h_m", "mean"), size=("h_m", "size"),
                                                     quantum=("quantum_m", "median")).reset_index()
     r = radius_m[sides["tree"].to_numpy(int)]
-    ok = (sides["size"] >= min_rows) & (np.abs(sides["h"] - r) <= max_change * r)
+    ok = (sides["size"] >= min_rows) & (sides["h"] >= radius_range[0] * r) & (sides["h"] <= radius_range[1] * r)
     sides = sides[ok.to_numpy()]
     both = sides.groupby(["tree", "scan"]).agg(width=("h", "sum"), n=("side", "size"),
                                                quantum=("quantum", "max")).reset_index()
@@ -194,7 +196,7 @@ def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd
                              edge_step_m=tp.caliper_edge_step_m)
         parts.append(e.assign(scan=sid))
     edges = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=EDGE_COLUMNS)
-    return caliper_dbh(edges, radius, min_rows=tp.caliper_min_rows, max_change=tp.caliper_max_change,
+    return caliper_dbh(edges, radius, min_rows=tp.caliper_min_rows, radius_range=tuple(tp.caliper_radius_range),
                        width_sd_m=tp.caliper_width_sd_m)
 
 
