@@ -148,3 +148,21 @@ def test_dbh_limits_a_noisy_cylinder_taper_and_reaches_a_near_cylinder_above():
     new, _ = merge_trees(both, grid)
     w = np.array([50, 50]) / (0.042 + 0.003 * np.array([6.0, 18.0])) ** 2
     assert new["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.14, 0.17], weights=w))
+
+
+def test_a_lone_near_cylinder_far_too_small_gives_way_to_agreeing_ones():
+    """One scan sees a 32 cm stem's partial arc near breast height from 17 m (r 6 cm); three
+    scans beyond 20 m agree on r 17 cm: the lone cylinder no longer decides (dbh_note says so).
+    Two others that disagree with each other, or agree on a smaller radius, leave it alone."""
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    cyl = _one_stem_from([(17.0, 0.063), (22.9, 0.170), (25.4, 0.170), (25.5, 0.177)])
+    trees, _ = merge_trees(cyl, grid)
+    w = 50 / (0.042 + 0.003 * np.array([22.9, 25.4, 25.5])) ** 2
+    assert trees["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.170, 0.170, 0.177], weights=w))
+    assert "the one nearest gave 12.6 cm" in trees["dbh_note"].iloc[0]
+    old, _ = merge_trees(cyl, grid, lone_ratio=None)
+    assert old["dbh_m"].iloc[0] == pytest.approx(0.126)
+    split, _ = merge_trees(_one_stem_from([(17.0, 0.063), (22.9, 0.10), (25.4, 0.17)]), grid)
+    assert split["dbh_m"].iloc[0] == pytest.approx(0.126)
+    thin, _ = merge_trees(_one_stem_from([(17.0, 0.063), (22.9, 0.08), (25.4, 0.08)]), grid)
+    assert thin["dbh_m"].iloc[0] == pytest.approx(0.126)
