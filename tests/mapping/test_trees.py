@@ -121,10 +121,18 @@ def test_dbh_prefers_near_observations_and_weights_by_beam_footprint():
 def test_dbh_weighted_median_ignores_one_occluded_cylinder():
     grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
     cyl = _one_stem_from([(5.0, 0.16), (6.0, 0.16), (7.0, 0.16), (8.0, 0.09)])
-    mean, _ = merge_trees(cyl, grid)
-    med, _ = merge_trees(cyl, grid, dbh_statistic="median")
+    mean, _ = merge_trees(cyl, grid, small_share=None)
+    med, _ = merge_trees(cyl, grid, dbh_statistic="median", small_share=None)
     assert med["dbh_m"].iloc[0] == pytest.approx(0.32)
     assert mean["dbh_m"].iloc[0] < 0.31
+    # the default leaves out a cylinder below 0.7 of the weighted median: the mean is 0.32 too
+    trimmed, _ = merge_trees(cyl, grid)
+    assert trimmed["dbh_m"].iloc[0] == pytest.approx(0.32)
+    # not with fewer than two left, nor one only a little small
+    two, _ = merge_trees(_one_stem_from([(5.0, 0.16), (6.0, 0.09)]), grid)
+    assert two["dbh_m"].iloc[0] < 0.31
+    mild, _ = merge_trees(_one_stem_from([(5.0, 0.16), (6.0, 0.16), (7.0, 0.12)]), grid)
+    assert mild["dbh_m"].iloc[0] < 0.315
 
 
 def test_dbh_limits_a_noisy_cylinder_taper_and_reaches_a_near_cylinder_above():
