@@ -302,6 +302,11 @@ class TreeParams(_Stage):
     # radius far too small; a side at half of it is a stem cut by an occluder)
     caliper_radius_range: tuple[float, float] = (0.5, 2.0)
     caliper_edge_step_m: float = 0.3  # the first return beyond an edge lies this much farther
+    # trees whose scans each saw one side: a circle about a free centre through the sides of
+    # several scans, when their normals spread around the stem (mean unit vector shorter than
+    # this; 0: not) and the radius lies within caliper_one_sided_agree of the cylinders'
+    caliper_one_sided_spread: float = 0.5
+    caliper_one_sided_agree: float = 0.25
     slice_bin_deg: float = 10.0  # angle bins of the outline fit
     slice_min_points: int = 30
     # circumference with points, else the cylinders: an arc seen from one side (about 120 deg

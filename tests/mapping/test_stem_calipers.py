@@ -8,7 +8,12 @@ import pandas as pd
 import pyarrow as pa
 import pytest
 
-from forestmap_assets.core.mapping.stem_calipers import blend_calipers, caliper_dbh, tree_calipers
+from forestmap_assets.core.mapping.stem_calipers import (
+    blend_calipers,
+    caliper_dbh,
+    silhouette_edges,
+    tree_calipers,
+)
 from forestmap_assets.params import TreeParams
 
 EXIT_M, DIV_RAD = 0.042, 0.003  # the own simulator's beam (spec 1.1)
@@ -73,6 +78,35 @@ def test_widths_less_the_footprint_give_the_diameter():
     assert raw["caliper_dbh_m"].iat[0] - 2 * r > 0.05
 
 
+def test_sides_of_several_scans_give_a_circle_where_no_scan_saw_both():
+    """The six scans of the first test with one side of each taken away (as if hidden): the
+    sides, three on each side of the stem, surround it, and a circle about a free centre
+    through them gives 0.30 m; sides crowded in one direction give nothing."""
+    r, (cx, cy) = 0.15, (10.0, 0.37)
+    stems = stems_table(cx + 0.07, cy - 0.04, 0.14)  # the cylinders' axis 8 cm off
+    parts = []
+    for i, (d, a) in enumerate(zip((8.0, 9.3, 10.4, 11.7, 12.9, 14.1), np.radians([0, 61, 127, 188, 242, 305]),
+                                   strict=True)):
+        sx, sy = cx - d * np.cos(a), cy - d * np.sin(a)
+        e = silhouette_edges(scan_table([(cx - sx, cy - sy, r)]), np.array([sx, sy, 0.0, 0.0]), stems,
+                             half_height_m=0.3, reach_m=np.array([0.35]), beam_exit_m=EXIT_M,
+                             beam_divergence_rad=DIV_RAD)
+        parts.append(e[e["side"] == (1 if i % 2 else -1)].assign(scan=f"S{i}"))
+    edges = pd.concat(parts, ignore_index=True)
+    # each side's distance from the cylinders' axis is the support of the true circle at its
+    # normal: r plus the axis's offset along the normal
+    side = edges.groupby(["scan", "side"]).agg(h=("h_m", "mean"), phi=("phi", "median"))
+    offset = np.array([cx, cy]) - stems[["x", "y"]].to_numpy()[0]
+    support = r + offset[0] * np.cos(side["phi"]) + offset[1] * np.sin(side["phi"])
+    assert np.abs(side["h"] - support).max() <= np.radians(STEP_DEG) * 14.1
+    assert caliper_dbh(edges, np.array([0.14]), one_sided_spread=None).empty
+    cal = caliper_dbh(edges, np.array([0.14]))
+    assert cal["n_scans"].tolist() == [6]
+    assert abs(cal["caliper_dbh_m"].iat[0] - 2 * r) <= np.radians(STEP_DEG) * 11.0 / 2
+    crowded = edges[edges["scan"].isin(["S0", "S1"])]  # two sides 61 deg apart
+    assert caliper_dbh(crowded, np.array([0.14])).empty
+
+
 def test_an_occluded_edge_gives_no_width():
     """A nearer pole just beyond one side of the stem's silhouette: that scan's width is void;
     the other scan still measures the stem."""
@@ -105,7 +139,7 @@ def test_caliper_dbh_weights_and_guards():
     edges = pd.DataFrame({
         "tree": [0] * 8, "scan": ["A"] * 4 + ["B"] * 4, "side": [-1, -1, 1, 1] * 2, "row": [0, 1] * 4,
         "h_m": [0.10, 0.10, 0.11, 0.11, 0.105, 0.105, 0.105, 0.105],
-        "range_m": [10.0] * 8, "quantum_m": [0.01] * 4 + [0.04] * 4})
+        "range_m": [10.0] * 8, "quantum_m": [0.01] * 4 + [0.04] * 4, "phi": [-1.6, -1.6, 1.6, 1.6] * 2})
     cal = caliper_dbh(edges, np.array([0.1]), width_sd_m=0.0)
     # A (0.21 m, pixels of 1 cm) weighs 16 times B (0.21 m as well here)
     assert cal["caliper_dbh_m"].iat[0] == pytest.approx(0.21)

@@ -23,7 +23,9 @@ breast height, inside :mod:`.stem_slices`' gate):
 3. a side's distance is the mean over its lines within a pixel of their median (at least
    ``min_rows`` lines; a leaning, rough stem's edge crosses pixels from line to line), kept within
    ``radius_range`` (shares) of the tree's radius; a scan with both sides gives a width, and a
-   tree's caliper DBH is the mean of its scans' widths, weighted by their pixels' size.
+   tree's caliper DBH is the mean of its scans' widths, weighted by their pixels' size; a tree
+   whose every scan saw one side only gets a circle fitted to the sides of several scans when
+   they surround the stem (:func:`_one_sided_dbh`).
 
 :func:`blend_calipers` mixes that DBH with the outline's or the cylinders' (weight: the
 points' scatter about the outlines against the calipers' own error). Simulated plots: ``benchmarks/results.md``,
@@ -51,7 +53,7 @@ from forestmap_assets.core.mapping.stem_slices import (
 if TYPE_CHECKING:
     import pyarrow as pa
 
-EDGE_COLUMNS = ["tree", "scan", "side", "row", "h_m", "range_m", "quantum_m"]
+EDGE_COLUMNS = ["tree", "scan", "side", "row", "h_m", "range_m", "quantum_m", "phi"]
 EDGE_COLUMNS_NEEDED = ["row", "col", "range_m", "x", "y", "z"]
 MAX_LOOK_PIXELS = 64
 
@@ -136,19 +138,27 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
     clear = (first > e_rng + edge_step_m) & (full_circle | ~outside.any(1))
     footprint = 0.5 * (beam_exit_m + beam_divergence_rad * e_rng)
     h = dist[ends] * np.sin(np.abs(bearing[ends]) + 0.5 * step) - footprint
+    # the tangent's outward normal: the axis's bearing from the scanner turned by 90 deg plus
+    # the edge's angle, towards the edge's side
+    normal = (np.arctan2(to_axis[ends, 1], to_axis[ends, 0])
+              + side * (0.5 * np.pi + np.abs(bearing[ends]) + 0.5 * step))
     return pd.DataFrame({"tree": k[ends][clear], "side": side[clear], "row": e_row[clear],
-                         "h_m": h[clear], "range_m": e_rng[clear], "quantum_m": (dist[ends] * step)[clear]})
+                         "h_m": h[clear], "range_m": e_rng[clear], "quantum_m": (dist[ends] * step)[clear],
+                         "phi": normal[clear]})
 
 
 def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
-                radius_range: tuple[float, float] = (0.5, 2.0), width_sd_m: float = 0.008) -> pd.DataFrame:
+                radius_range: tuple[float, float] = (0.5, 2.0), width_sd_m: float = 0.008,
+                one_sided_spread: float | None = 0.5, one_sided_agree: float = 0.25) -> pd.DataFrame:
     """Each tree's caliper DBH (``tree, caliper_dbh_m, caliper_sd_m, n_scans``) from the
     silhouette edges of all scans (``EDGE_COLUMNS``; step 3 of the module docstring): the
     scans' widths weighted by their precision (the pixel across at the edge, ``quantum_m``,
     and ``width_sd_m`` for the footprint's model and the section's own widths);
     ``radius_m`` (trees,) the trees' current radii, of which a side's distance must lie within
     ``radius_range`` (shares: the cylinders' radius may be far too small where partial arcs made
-    it, but a side at half of it is a stem cut by an occluder the edge test missed)."""
+    it, but a side at half of it is a stem cut by an occluder the edge test missed). A tree
+    without a width from any scan may still get one from sides of several scans
+    (:func:`_one_sided_dbh`, with ``one_sided_spread``; None: not)."""
     cols = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"]
     if edges.empty:
         return pd.DataFrame({c: pd.Series(dtype="float64") for c in cols})
@@ -158,7 +168,8 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     # crosses pixels from line to line, so the mean resolves what one line cannot
     near = np.abs(edges["h_m"] - med) <= edges["quantum_m"]
     sides = edges[near.to_numpy()].groupby(key).agg(h=("h_m", "mean"), size=("h_m", "size"),
-                                                    quantum=("quantum_m", "median")).reset_index()
+                                                    quantum=("quantum_m", "median"),
+                                                    phi=("phi", "median")).reset_index()
     r = radius_m[sides["tree"].to_numpy(int)]
     ok = (sides["size"] >= min_rows) & (sides["h"] >= radius_range[0] * r) & (sides["h"] <= radius_range[1] * r)
     sides = sides[ok.to_numpy()]
@@ -171,7 +182,37 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     out = both.groupby("tree").agg(wx=("wx", "sum"), w=("w", "sum"), n_scans=("w", "size")).reset_index()
     out["caliper_dbh_m"] = out["wx"] / out["w"]
     out["caliper_sd_m"] = np.sqrt(1.0 / out["w"])
-    return out[cols]
+    out = out[cols]
+    if one_sided_spread is not None:
+        rest = sides[~sides["tree"].isin(out["tree"])]
+        extra = _one_sided_dbh(rest, radius_m, one_sided_spread, one_sided_agree, width_sd_m)
+        out = pd.concat([out, extra], ignore_index=True) if len(extra) else out
+    return out
+
+
+def _one_sided_dbh(sides: pd.DataFrame, radius_m: np.ndarray, spread: float, agree: float,
+                   width_sd_m: float) -> pd.DataFrame:
+    """Caliper DBH of trees whose scans each saw one silhouette side only (the other hidden):
+    the sides' distances ``h`` at their outward normals ``phi``, from 3 or more sides of 2 or
+    more scans whose normals spread around the stem (the mean of their unit vectors shorter
+    than ``spread``), fit a circle about an unknown centre, ``h = a0 + dx cos phi + dy sin phi``
+    (least squares, weights from the pixels). Kept where ``a0`` lies within ``agree`` (share) of
+    the cylinders' radius and the centre moved less than it: sides that crowd one direction,
+    or a stem cut by an occluder the edge test missed, leave the centre undetermined."""
+    rows = []
+    for t, g in sides.groupby("tree"):
+        phi = g["phi"].to_numpy(float)
+        if len(g) < 3 or g["scan"].nunique() < 2 or np.abs(np.exp(1j * phi).mean()) > spread:
+            continue
+        a_mat = np.column_stack([np.ones(phi.size), np.cos(phi), np.sin(phi)])
+        w = 1.0 / (g["quantum"].to_numpy(float) ** 2 / 12.0 + (0.5 * width_sd_m) ** 2)
+        normal = a_mat.T @ (a_mat * w[:, None])
+        a = np.linalg.solve(normal, a_mat.T @ (w * g["h"].to_numpy(float)))
+        r0 = radius_m[int(t)]
+        if abs(a[0] - r0) > agree * r0 or np.hypot(a[1], a[2]) > r0:
+            continue
+        rows.append((int(t), 2.0 * a[0], 2.0 * float(np.sqrt(np.linalg.inv(normal)[0, 0])), int(g["scan"].nunique())))
+    return pd.DataFrame(rows, columns=["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"])
 
 
 def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp) -> pd.DataFrame:
@@ -197,7 +238,8 @@ def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd
         parts.append(e.assign(scan=sid))
     edges = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=EDGE_COLUMNS)
     return caliper_dbh(edges, radius, min_rows=tp.caliper_min_rows, radius_range=tuple(tp.caliper_radius_range),
-                       width_sd_m=tp.caliper_width_sd_m)
+                       width_sd_m=tp.caliper_width_sd_m, one_sided_spread=tp.caliper_one_sided_spread or None,
+                       one_sided_agree=tp.caliper_one_sided_agree)
 
 
 def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, noise_ref_m: float) -> tuple[pd.DataFrame, float]:
