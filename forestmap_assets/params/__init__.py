@@ -292,9 +292,10 @@ class TreeParams(_Stage):
     # DBH blended with the silhouettes' widths (core/mapping/stem_calipers.py): they need the
     # beam's footprint, so campaign.yaml's sensor section turns them on when it names the beam
     calipers: bool = False
-    # the calipers' own error (width quantisation, footprint model): the blend's weight is
-    # s^2 / (s^2 + ref^2) with s the points' scatter about the stems' outlines
-    caliper_noise_ref_m: float = 0.0125
+    # the blend's weight is s^2 / (s^2 + ref^2): s the points' scatter about the stems' outlines,
+    # ref the calipers' own error, this factor x the median sd of the trees' caliper DBH (their
+    # pixels' size and caliper_width_sd_m)
+    caliper_sd_factor: float = 1.0
     caliper_half_height_m: float = 0.3  # silhouettes from 1.3 m -/+ this
     caliper_min_rows: int = 2  # scan lines a silhouette side needs
     caliper_width_sd_m: float = 0.008  # a scan's width beyond its pixels' quantisation

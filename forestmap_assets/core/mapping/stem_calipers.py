@@ -28,7 +28,8 @@ breast height, inside :mod:`.stem_slices`' gate):
    they surround the stem (:func:`_one_sided_dbh`).
 
 :func:`blend_calipers` mixes that DBH with the outline's or the cylinders' (weight: the
-points' scatter about the outlines against the calipers' own error). Simulated plots: ``benchmarks/results.md``,
+points' scatter about the outlines against the calipers' own error, the median sd of the
+trees' caliper DBH, which grows with the pixels' size). Simulated plots: ``benchmarks/results.md``,
 section "DBH from silhouette widths".
 """
 
@@ -249,7 +250,7 @@ def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, 
     calipers' own error (the widths' quantisation and the footprint's model). Returns the trees
     and ``w``."""
     out = trees.copy()
-    if calipers.empty or not np.isfinite(noise_m) or noise_m <= 0:
+    if calipers.empty or not np.isfinite(noise_m) or noise_m <= 0 or not np.isfinite(noise_ref_m):
         return out, 0.0
     w = float(noise_m**2 / (noise_m**2 + noise_ref_m**2))
     rows = calipers["tree"].to_numpy(int)
@@ -273,7 +274,10 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
         return out, fits
     calipers = tree_calipers(images, poses, slice_stems(trees, cyl, tree_of_cyl, breast_height_m), tp)
     noise = float(np.nanmedian(fits["sigma_m"])) if fits["sigma_m"].notna().any() else float("nan")
-    out, weight = blend_calipers(out, calipers, noise, tp.caliper_noise_ref_m)
+    # the calipers' own error: their trees' median sd (the pixels' size: the scanner's step and
+    # the ranges), times caliper_sd_factor
+    ref = tp.caliper_sd_factor * float(np.median(calipers["caliper_sd_m"])) if len(calipers) else np.nan
+    out, weight = blend_calipers(out, calipers, noise, ref)
     rows = fits.index[calipers["tree"].to_numpy(int)]
     for col, src in (("caliper_dbh_m", "caliper_dbh_m"), ("caliper_sd_m", "caliper_sd_m"), ("caliper_scans", "n_scans")):
         fits.loc[rows, col] = calipers[src].to_numpy()
