@@ -48,6 +48,7 @@ from forestmap_assets.core.mapping.stem_slices import (
     MAX_SLOPE,
     StemCells,
     merged_slice_dbh,
+    slice_members,
     slice_stems,
 )
 
@@ -95,13 +96,9 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
     p = transform_points(xyz, pose)
     centre = stems[["x", "y"]].to_numpy(float)
     slope = stems[["slope_x", "slope_y"]].to_numpy(float)
-    _, k = cKDTree(centre).query(p[:, :2], distance_upper_bound=float(np.max(reach_m)) + 0.1)
-    hit = k < len(centre)
-    idx, p, k = idx[hit], p[hit], k[hit]
-    dz = p[:, 2] - zbh[k]
+    i, k, dz = slice_members(p, cKDTree(centre), zbh, slope, reach_m, half_height_m)
+    idx, p = idx[i], p[i]
     axis = centre[k] + slope[k] * dz[:, None]
-    keep = (np.abs(dz) <= half_height_m) & (np.hypot(*(p[:, :2] - axis).T) <= reach_m[k])
-    idx, p, k, axis = idx[keep], p[keep], k[keep], axis[keep]
     if not idx.size:
         return empty
     sensor = np.asarray(pose[:2], np.float64)
@@ -268,11 +265,12 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
     arguments), blended with the silhouettes' widths when ``tp.calipers`` and the scans' range
     images ``images`` (``EDGE_COLUMNS_NEEDED``) are given. The fits gain ``caliper_dbh_m,
     caliper_sd_m, caliper_scans``; a blended tree's ``dbh_note`` says so."""
-    out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m)
+    stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
+    out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems)
     fits["caliper_dbh_m"], fits["caliper_sd_m"], fits["caliper_scans"] = np.nan, np.nan, 0
     if not (tp.calipers and images):
         return out, fits
-    calipers = tree_calipers(images, poses, slice_stems(trees, cyl, tree_of_cyl, breast_height_m), tp)
+    calipers = tree_calipers(images, poses, stems, tp)
     noise = float(np.nanmedian(fits["sigma_m"])) if fits["sigma_m"].notna().any() else float("nan")
     # the calipers' own error: their trees' median sd (the pixels' size: the scanner's step and
     # the ranges), times caliper_sd_factor

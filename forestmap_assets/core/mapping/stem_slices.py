@@ -136,6 +136,23 @@ class StemCells:
         return idx[(zi >= z_lo[cell]) & (zi <= z_hi[cell])]
 
 
+def slice_members(p: np.ndarray, tree: cKDTree, zbh: np.ndarray, slope: np.ndarray, reach: np.ndarray,
+                  half_height_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which of the global points ``p`` (n, 3) lie in a stem's slice: within ``half_height_m``
+    of its breast height ``zbh`` and within ``reach`` of its axis (through the k-d ``tree`` of
+    the axes at breast height, leaning by ``slope``) at the point's height, the nearest stem
+    deciding. Returns the points' indices, their stems' rows and their heights above breast
+    height."""
+    reach_max = float(np.max(reach + np.hypot(*slope.T) * half_height_m))
+    _, k = tree.query(p[:, :2], distance_upper_bound=reach_max)
+    hit = np.flatnonzero(k < len(zbh))
+    k = k[hit]
+    dz = p[hit, 2] - zbh[k]
+    xy = p[hit, :2] - slope[k] * dz[:, None]
+    keep = (np.abs(dz) <= half_height_m) & (np.hypot(*(xy - tree.data[k]).T) <= reach[k])
+    return hit[keep], k[keep], dz[keep]
+
+
 def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame, *,
                   half_height_m: float = 0.1, gate_factor: float = 1.5,
                   gate_margin_m: float = 0.05) -> tuple[pd.DataFrame, np.ndarray]:
@@ -162,7 +179,6 @@ def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: 
     slope = (stems[["slope_x", "slope_y"]].to_numpy(float) if {"slope_x", "slope_y"} <= set(stems)
              else np.zeros((len(stems), 2)))
     reach = gate_factor * stems["radius_m"].to_numpy(float) + gate_margin_m
-    reach_max = float(np.max(reach + np.hypot(*slope.T) * half_height_m))
     tree = cKDTree(centre)
     placed = poses.set_index("scan")
     parts = []
@@ -174,14 +190,10 @@ def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: 
         sensors[index] = pose[:2]
         near = _in_band(np.asarray(xyz[:, 2], np.float64) + pose[2], zbh, half_height_m)
         p = transform_points(np.asarray(xyz[near], np.float64), pose)
-        _, k = tree.query(p[:, :2], distance_upper_bound=reach_max)
-        hit = k < len(stems)
-        p, k = p[hit], k[hit]
-        dz = p[:, 2] - zbh[k]
-        xy = p[:, :2] - slope[k] * dz[:, None]
-        keep = (np.abs(dz) <= half_height_m) & (np.hypot(*(xy - centre[k]).T) <= reach[k])
-        parts.append(pd.DataFrame({"tree": k[keep], "x": xy[keep, 0], "y": xy[keep, 1],
-                                   "z": p[keep, 2], "scan": np.full(int(keep.sum()), index)}))
+        i, k, dz = slice_members(p, tree, zbh, slope, reach, half_height_m)
+        xy = p[i, :2] - slope[k] * dz[:, None]
+        parts.append(pd.DataFrame({"tree": k, "x": xy[:, 0], "y": xy[:, 1],
+                                   "z": p[i, 2], "scan": np.full(i.size, index)}))
     if not parts:
         return empty, sensors
     return pd.concat(parts, ignore_index=True)[SLICE_COLUMNS], sensors
@@ -367,13 +379,14 @@ def slice_stems(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
 
 def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
                      clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, tp,
-                     breast_height_m: float = 1.3) -> tuple[pd.DataFrame, pd.DataFrame]:
+                     breast_height_m: float = 1.3,
+                     stems: pd.DataFrame | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The tree list of :func:`~forestmap_assets.core.mapping.trees.merge_trees` (``trees``,
     ``tree_of_cyl`` over the global cylinders ``cyl``) with DBH from the breast-height slices of
     the registered scans' levelled points ``clouds`` placed with ``poses``; ``tp`` is the tree
     parameter section (``params.TreeParams``). Returns the trees and the per-tree fits of
-    :func:`slice_dbhs`."""
-    stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
+    :func:`slice_dbhs`. ``stems``: the trees' :func:`slice_stems`, if the caller has them."""
+    stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m) if stems is None else stems
     slices, sensors = gather_slices(clouds, poses, stems, half_height_m=tp.slice_half_height_m,
                                     gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
     return slice_dbhs(trees, slices, sensors, max_change=tp.slice_max_change,
