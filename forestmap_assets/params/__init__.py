@@ -308,6 +308,11 @@ class TreeParams(_Stage):
     # this; 0: not) and the radius lies within caliper_one_sided_agree of the cylinders'
     caliper_one_sided_spread: float = 0.5
     caliper_one_sided_agree: float = 0.25
+    # widths of several directions fit w0 + a2 cos 2a + b2 sin 2a (an out-of-round section's
+    # width across the line of sight a), a2 and b2 with a prior sd of this share of w0: an
+    # ellipse of flattening f has c = f / (2 - f), 2.6-8 % for the 5-15 % of issue 19's stems
+    # (RMS about 5.7 %, 4 % for each of the two terms; 0: the weighted mean of the widths)
+    caliper_ellipse_prior: float = 0.04
     slice_bin_deg: float = 10.0  # angle bins of the outline fit
     slice_min_points: int = 30
     # circumference with points, else the cylinders: an arc seen from one side (about 120 deg

@@ -13,6 +13,7 @@ from forestmap_assets.core.mapping.stem_calipers import (
     caliper_dbh,
     silhouette_edges,
     tree_calipers,
+    width_function,
 )
 from forestmap_assets.params import TreeParams
 
@@ -189,3 +190,28 @@ def test_calipers_lower_the_dbh_error_on_simulated_realistic_stems(tmp_path):
     without = dbh_rmse()
     # measured 1.6 against 2.4 cm (seeds 31-34: 1.6-2.3 against 2.3-2.7 cm)
     assert with_calipers < without - 0.004 and with_calipers < 0.02, (with_calipers, without)
+
+
+def test_width_function_takes_out_the_ellipse_the_directions_show():
+    """An out-of-round section (r = R (1 + c cos 2 psi)) is 2R (1 - c cos 2a) wide across the
+    line of sight a. Two directions 90 deg apart average the ellipse out; two others leave part
+    of it in the mean, and so does the fit (each width has its own ellipse term). From three or
+    four directions the fit with the ellipse prior takes out part of what the mean keeps."""
+    big_r, c = 0.15, 0.06
+
+    def widths(sight_deg):
+        a = np.radians(np.asarray(sight_deg, float))
+        phi = a + 0.5 * np.pi  # the sides' normals, across the line of sight
+        return pd.DataFrame({"tree": 0, "width": 2 * big_r * (1 - c * np.cos(2 * a)), "w": 1e4,
+                             "c2": np.cos(2 * phi), "s2": np.sin(2 * phi)})
+
+    assert width_function(widths([0.0, 90.0]), 0.04)["caliper_dbh_m"].iat[0] == pytest.approx(2 * big_r)
+    two = widths([0.0, 45.0])
+    assert width_function(two, 0.04)["caliper_dbh_m"].iat[0] == pytest.approx(2 * big_r * (1 - c / 2))
+    for sight in ([0.0, 30.0, 60.0], [0.0, 20.0, 40.0, 60.0]):
+        mean = width_function(widths(sight), 0.0)["caliper_dbh_m"].iat[0]
+        assert mean == pytest.approx(2 * big_r * (1 - c * np.cos(2 * np.radians(sight)).mean()))
+        fit = width_function(widths(sight), 0.04)
+        assert abs(fit["caliper_dbh_m"].iat[0] - 2 * big_r) < 0.85 * abs(mean - 2 * big_r)
+        assert fit["n_scans"].tolist() == [len(sight)]
+        assert fit["caliper_sd_m"].iat[0] == pytest.approx(np.sqrt(1 / (1e4 * len(sight))))

@@ -147,7 +147,8 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
 
 def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
                 radius_range: tuple[float, float] = (0.5, 2.0), width_sd_m: float = 0.008,
-                one_sided_spread: float | None = 0.5, one_sided_agree: float = 0.25) -> pd.DataFrame:
+                one_sided_spread: float | None = 0.5, one_sided_agree: float = 0.25,
+                ellipse_prior: float = 0.04) -> pd.DataFrame:
     """Each tree's caliper DBH (``tree, caliper_dbh_m, caliper_sd_m, n_scans``) from the
     silhouette edges of all scans (``EDGE_COLUMNS``; step 3 of the module docstring): the
     scans' widths weighted by their precision (the pixel across at the edge, ``quantum_m``,
@@ -156,7 +157,8 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     ``radius_range`` (shares: the cylinders' radius may be far too small where partial arcs made
     it, but a side at half of it is a stem cut by an occluder the edge test missed). A tree
     without a width from any scan may still get one from sides of several scans
-    (:func:`_one_sided_dbh`, with ``one_sided_spread``; None: not)."""
+    (:func:`_one_sided_dbh`, with ``one_sided_spread``; None: not). The widths of several
+    directions fit an out-of-round section (:func:`width_function`, ``ellipse_prior``)."""
     cols = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"]
     if edges.empty:
         return pd.DataFrame({c: pd.Series(dtype="float64") for c in cols})
@@ -171,21 +173,55 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     r = radius_m[sides["tree"].to_numpy(int)]
     ok = (sides["size"] >= min_rows) & (sides["h"] >= radius_range[0] * r) & (sides["h"] <= radius_range[1] * r)
     sides = sides[ok.to_numpy()]
-    both = sides.groupby(["tree", "scan"]).agg(width=("h", "sum"), n=("side", "size"),
-                                               quantum=("quantum", "max")).reset_index()
+    # a width's direction: its sides' normals (opposite), doubled
+    sides = sides.assign(c2=np.cos(2 * sides["phi"]), s2=np.sin(2 * sides["phi"]))
+    both = sides.groupby(["tree", "scan"]).agg(width=("h", "sum"), n=("side", "size"), quantum=("quantum", "max"),
+                                               c2=("c2", "mean"), s2=("s2", "mean")).reset_index()
     both = both[both["n"] == 2]
     # a width's variance: each side's edge uniform within one pixel across, plus width_sd_m
     both["w"] = 1.0 / (both["quantum"] ** 2 / 6.0 + width_sd_m**2)
-    both["wx"] = both["w"] * both["width"]
-    out = both.groupby("tree").agg(wx=("wx", "sum"), w=("w", "sum"), n_scans=("w", "size")).reset_index()
-    out["caliper_dbh_m"] = out["wx"] / out["w"]
-    out["caliper_sd_m"] = np.sqrt(1.0 / out["w"])
+    out = width_function(both, ellipse_prior)
     out = out[cols]
     if one_sided_spread is not None:
         rest = sides[~sides["tree"].isin(out["tree"])]
         extra = _one_sided_dbh(rest, radius_m, one_sided_spread, one_sided_agree, width_sd_m)
         out = pd.concat([out, extra], ignore_index=True) if len(extra) else out
     return out
+
+
+def width_function(widths: pd.DataFrame, ellipse_prior: float) -> pd.DataFrame:
+    """Each tree's mean width ``caliper_dbh_m`` from its scans' widths (``tree, width, w, c2,
+    s2``: width, inverse variance, cos and sin of twice the direction): a second-order section
+    ``r = R (1 + c cos 2(psi - theta))`` is ``2R (1 - c cos 2(a - theta))`` wide across the line
+    of sight ``a`` (its support function), so the widths fit ``w0 + a2 cos 2a + b2 sin 2a`` by
+    weighted least squares with a ridge prior of sd ``ellipse_prior x w0`` on ``a2, b2`` (0: the
+    weighted mean). Widths from two directions 90 deg apart, or three 60 deg apart, average the
+    ellipse out either way; two widths of equal weight give their mean (each can carry its own
+    ellipse term); from three directions or more the fit takes out part of what the mean keeps.
+    A tree's
+    ``caliper_sd_m`` is its widths' own (the weighted mean's) and ``n_scans`` their number."""
+    t = widths["tree"].to_numpy(int)
+    trees, k = np.unique(t, return_inverse=True)
+    w = widths["w"].to_numpy(float)
+    y = widths["width"].to_numpy(float)
+    basis = np.column_stack([np.ones_like(y), widths["c2"].to_numpy(float), widths["s2"].to_numpy(float)])
+    sw = np.bincount(k, w)
+    mean = np.bincount(k, w * y) / sw
+    normal = np.zeros((trees.size, 3, 3))
+    rhs = np.zeros((trees.size, 3))
+    for i in range(3):
+        rhs[:, i] = np.bincount(k, w * basis[:, i] * y, minlength=trees.size)
+        for j in range(3):
+            normal[:, i, j] = np.bincount(k, w * basis[:, i] * basis[:, j], minlength=trees.size)
+    if ellipse_prior > 0:
+        lam = 1.0 / (ellipse_prior * mean) ** 2
+        normal[:, 1, 1] += lam
+        normal[:, 2, 2] += lam
+        dbh = np.linalg.solve(normal, rhs[..., None])[:, 0, 0]
+    else:
+        dbh = mean
+    return pd.DataFrame({"tree": trees, "caliper_dbh_m": dbh, "caliper_sd_m": np.sqrt(1.0 / sw),
+                         "n_scans": np.bincount(k)})
 
 
 def _one_sided_dbh(sides: pd.DataFrame, radius_m: np.ndarray, spread: float, agree: float,
@@ -237,7 +273,7 @@ def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd
     edges = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=EDGE_COLUMNS)
     return caliper_dbh(edges, radius, min_rows=tp.caliper_min_rows, radius_range=tuple(tp.caliper_radius_range),
                        width_sd_m=tp.caliper_width_sd_m, one_sided_spread=tp.caliper_one_sided_spread or None,
-                       one_sided_agree=tp.caliper_one_sided_agree)
+                       one_sided_agree=tp.caliper_one_sided_agree, ellipse_prior=tp.caliper_ellipse_prior)
 
 
 def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, noise_ref_m: float) -> tuple[pd.DataFrame, float]:
