@@ -314,6 +314,10 @@ class TreeParams(_Stage):
     # (RMS about 5.7 %, 4 % for each of the two terms; 0: the weighted mean of the widths)
     caliper_ellipse_prior: float = 0.04
     slice_bin_deg: float = 10.0  # angle bins of the outline fit
+    # a bin farther than this from the outline the other bins fit (its leave-one-out residual
+    # in its own sd) is left out, the worst first (0: none): a branch or a neighbour's bark
+    # alone on the side no scan saw pulled the centre (Sylva survey 33: 46.4 cm read 51.6 cm)
+    slice_loo_sigmas: float = 3.5
     slice_min_points: int = 30
     # circumference with points, else the cylinders: an arc seen from one side (about 120 deg
     # once its edges are left out) fits a mean radius off by centimetres at 2.5 cm range noise

@@ -248,3 +248,26 @@ def test_slice_clouds_keep_what_the_slices_use():
     band = merged_slice_dbh(trees, cyl, np.array([1, 2]), kept, poses, tp)
     for a, b in zip(whole, band, strict=True):
         pd.testing.assert_frame_equal(a, b)
+
+
+def test_a_stray_bin_on_the_side_not_seen_is_left_out():
+    """Three points 10-17 cm outside a 23 cm-radius stem, on the side no scan saw (a branch, a
+    neighbour's bark), sit alone in their angle bin opposite the arc, where the outline is free:
+    they pulled the centre and the ellipse terms (Sylva survey 33: a 46.4 cm stem read 51.6 cm)
+    or, as here, the arc off its bins. The bin the others do not predict is left out."""
+    rng = np.random.default_rng(0)
+    centre, mean_r = np.array([0.0, 0.0]), 0.233
+    sensors = np.array([[0.0, 8.0], [5.0, 6.0]])
+    parts = [scan_section(centre, mean_r, 0.0, 0.0, s, rng, sigma=0.004, mixed=False, step_rad=0.0005)
+             for s in sensors]
+    ang = np.radians([-97.0, -93.0, -88.0])
+    stray = np.column_stack([np.array([0.33, 0.36, 0.40]) * np.cos(ang), np.array([0.33, 0.36, 0.40]) * np.sin(ang)])
+    xy = np.concatenate([*parts, stray])
+    sens = np.concatenate([np.broadcast_to(s, (len(p), 2)) for s, p in zip(sensors, parts, strict=True)]
+                          + [np.broadcast_to(sensors[0], (3, 2))])
+    kw = dict(beam_exit_m=0.005, beam_divergence_rad=3e-4, range_sigma_m=0.004, radius_prior_sd_m=0.01)
+    derailed = slice_dbh(xy, sens, centre, mean_r, **kw)
+    assert not abs(derailed.dbh_m - 2 * mean_r) < 0.01  # NaN (too little coverage) or off
+    fit = slice_dbh(xy, sens, centre, mean_r, loo_sigmas=3.5, **kw)
+    assert abs(fit.dbh_m - 2 * mean_r) < 0.005
+    assert fit.coverage_deg >= 180.0

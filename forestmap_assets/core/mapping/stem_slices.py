@@ -21,7 +21,10 @@ slice (:func:`slice_dbh`):
    ellipse terms (sd ``ellipse_prior`` x ``a0``: an arc seen from one or two sides cannot tell
    an ellipse from a shifted circle) and, with ``radius_prior_sd_m``, the cylinders' radius as
    a prior of ``a0``; ``(dx, dy)`` moves the centre and the fit is repeated; points farther
-   than ``trim_sigmas`` robust sigmas from the outline (branch stubs, understorey) are dropped;
+   than ``trim_sigmas`` robust sigmas from the outline (branch stubs, understorey) are dropped,
+   and so is a bin whose leave-one-out residual exceeds ``loo_sigmas`` of its own sd (a few
+   stray points alone on the side no scan saw: there the outline is free, and the fit follows
+   them unless they are left out);
 3. DBH = ``2 a0`` (the simulator's truth: twice the mean radius at 1.3 m of the section,
    ``sim/stem_shapes.py``), less the small outward bias ``sigma^2 sin^2(i) / (2 r)`` that range
    noise ``sigma`` at incidence ``i`` adds to a point's distance from the centre.
@@ -221,7 +224,8 @@ def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float,
               trim_sigmas: float = 3.0, range_sigma_m: float = 0.025, outline_sd_m: float = 0.005,
               radius_prior_sd_m: float | None = None, edge_footprints: float = 1.5,
               beam_exit_m: float = 0.042, beam_divergence_rad: float = 0.003,
-              radius_range: tuple[float, float] = (0.5, 1.6), iterations: int = 6) -> SliceFit:
+              radius_range: tuple[float, float] = (0.5, 1.6), iterations: int = 6,
+              loo_sigmas: float | None = None) -> SliceFit:
     """DBH of one stem from its merged slice points ``xy`` (n, 2), seen from ``sensor_xy``
     (n, 2; None: no incidence test), starting from the axis ``centre`` and ``radius_m`` (the
     cylinders'); the method is in the module docstring. ``radius_range`` (shares of
@@ -272,12 +276,27 @@ def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float,
         lam[3:] = 1.0 / (ellipse_prior * a0) ** 2
         if radius_prior_sd_m:  # the cylinders' radius as a prior of the mean radius
             lam[0], prior[0] = 1.0 / radius_prior_sd_m**2, radius_m / radius_prior_sd_m**2
-        normal = A.T @ (A * W[:, None]) + np.diag(lam)
-        a = np.linalg.solve(normal, A.T @ (W * mean_d[filled]) + prior)
-        sd = float(np.sqrt(np.linalg.inv(normal)[0, 0]))
+        y = mean_d[filled]
+        while True:
+            normal = A.T @ (A * W[:, None]) + np.diag(lam)
+            inv = np.linalg.inv(normal)
+            a = inv @ (A.T @ (W * y) + prior)
+            # a bin the others do not predict (a branch or a neighbour's bark on the side not
+            # seen): its residual left out of the fit, in its own sd (leave-one-out)
+            hat = np.clip(W * np.einsum("ij,jk,ik->i", A, inv, A), 0.0, 1.0 - 1e-9)
+            t = np.abs(y - A @ a) * np.sqrt(W / (1.0 - hat))
+            worst = int(np.argmax(t))
+            if not loo_sigmas or t[worst] <= loo_sigmas:
+                break
+            A, W, y = (np.delete(v, worst, axis=0) for v in (A, W, y))
+            coverage -= 360.0 / n_bins
+            if coverage < min_coverage_deg:
+                return _with(none, n_points=int(keep.sum()), coverage_deg=coverage, sigma_m=sigma,
+                             reason=f"{coverage:.0f} deg of the circumference seen")
+        sd = float(np.sqrt(inv[0, 0]))
         c = c + a[1:3]
         a0, theta = float(a[0]), a
-        rms = float(np.sqrt(np.average((mean_d[filled] - A @ a) ** 2, weights=W)))
+        rms = float(np.sqrt(np.average((y - A @ a) ** 2, weights=W)))
         if not (radius_range[0] * radius_m <= a0 <= radius_range[1] * radius_m) or (
                 np.hypot(*(c - centre)) > radius_m):
             return _with(none, n_points=int(keep.sum()), coverage_deg=coverage,
@@ -396,4 +415,4 @@ def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.nda
                       range_sigma_m=tp.range_sigma_m, outline_sd_m=tp.slice_outline_sd_m,
                       radius_prior_sd_m=tp.slice_cylinder_sd_m or None,
                       edge_footprints=tp.slice_edge_footprints, beam_exit_m=tp.beam_exit_m,
-                      beam_divergence_rad=1e-3 * tp.beam_divergence_mrad)
+                      beam_divergence_rad=1e-3 * tp.beam_divergence_mrad, loo_sigmas=tp.slice_loo_sigmas or None)
