@@ -228,9 +228,12 @@ class RegistrationParams(_Stage):
     # score every pair by its matching stems (x, y, radius of the cylinder segments), search only
     # each scan's screen_keep best partners and a maximum spanning tree of the scores (at most
     # (screen_keep + 1) * N pairs); False or screen_keep 0: every pair (off in the structured
-    # presets, whose sub-maps are walls and pillar rows)
+    # presets, whose sub-maps are walls and pillar rows). 4, not 3: a network of many scans
+    # turns about its reference by the sum of its links' heading errors, and more loops hold it
+    # (51 scans on a 65 m plot: 120 -> 151 pairs, the farthest scans 2.0 -> 1.15 cm off, the
+    # network's rotation 0.018 -> 0.008 deg; benchmarks/results.md, "scale")
     screening: bool = True
-    screen_keep: int = 3
+    screen_keep: int = 4
     # a pair whose screening matched at least this many stems is searched in a box of
     # screen_box (xy m, heading deg) around the screening motion (accurate to about 1 cm and
     # 0.1 deg on Sylva's surveys), then in the no-prior box if that fails (0: always no-prior)
