@@ -102,8 +102,9 @@ def registration_assets(campaign: Campaign) -> list:
         "no-prior box (full heading circle, xy box of the scans' reach) (thesis 5.4; spec 6.4); "
         "with registration.no_prior_method 'fourier', no-prior boxes centred on the Fourier coarse "
         "registration of the raw points (men spec 4). Without priors, registration.screening "
-        "keeps each scan's best registration.screen_keep partners by a stem-layout comparison "
-        "(column screen_score; inferred, issue 17).",
+        "keeps each scan's best registration.screen_keep partners (screen_keep_large beyond "
+        "screen_large_scans scans) by a stem-layout comparison (column screen_score; inferred, "
+        "issue 17).",
     )
     @timed
     def candidate_pairs(context, submaps, **raw):  # raw: range_images (fourier), cylinder_segments (screening)
@@ -123,7 +124,7 @@ def registration_assets(campaign: Campaign) -> list:
             list(submaps), pairs=[p for p in pairs if p[0] in submaps and p[1] in submaps] if pairs else None,
             a_priori=a_priori, search=(reg.xy_m, reg.z_m, reg.heading_deg), reach=reach,
             k_nearest=reg.k_nearest, max_distance_m=reg.max_distance_m, max_xy_m=reg.max_xy_m,
-            stems=stems, screen_keep=reg.screen_keep if screen else 0,
+            stems=stems, screen_keep=reg.keep_for(len(submaps)) if screen else 0,
             # no_prior_method fourier centres the no-prior boxes on its own result instead
             screen_centre_min=reg.screen_centre_min if screen and not fourier else 0, screen_box=tuple(reg.screen_box),
             progress=lambda m: (context.log.info(m), report(m)),
@@ -137,7 +138,7 @@ def registration_assets(campaign: Campaign) -> list:
             table = coarse_candidates(table, clouds, search=(reg.xy_m, reg.z_m, reg.heading_deg),
                                       progress=lambda m: (context.log.info(m), report(m)))
         meta = {"pairs": len(table), "source": str(table["source"].iloc[0]) if len(table) else "none",
-                "screened": bool(screen and len(submaps) > reg.screen_keep + 1),
+                "screened": bool(screen and len(submaps) > reg.keep_for(len(submaps)) + 1),
                 "table": md_table(table)}
         return Output(table, metadata=meta, data_version=data_version(table))
 
@@ -303,7 +304,7 @@ def registration_assets(campaign: Campaign) -> list:
         code_version=code_version(campaign, "retry_pairs"),
         description="Pairs for the scans the candidate pairs left unplaced (inferred, issue 17): "
         "every scan outside the largest group the accepted candidate pairs link is screened "
-        "against that group again and its registration.screen_keep best partners not yet "
+        "against that group again and its best partners (as many as candidate_pairs keeps) not yet "
         "searched are added as pairs with the no-prior box.",
     )
     @timed
@@ -324,12 +325,13 @@ def registration_assets(campaign: Campaign) -> list:
         if len(largest_group(campaign.scan_ids, regs)) < len(campaign.scan_ids):
             io = context.resources.io_manager
             submaps = {sid: t for sid in campaign.scan_ids if (t := read_stored(io, campaign, "submaps", sid)) is not None}
-            if len(submaps) > reg.screen_keep + 1:
+            keep = reg.keep_for(len(submaps))
+            if len(submaps) > keep + 1:
                 cylinders = {sid: read_stored(io, campaign, "cylinder_segments", sid) for sid in submaps}
                 extra = retry_candidates(
                     [s for s in campaign.scan_ids if s in submaps], candidate_pairs, regs,
                     {sid: stems_from_cylinders(cylinders[sid]) for sid in submaps},
-                    keep=reg.screen_keep, search=(reg.xy_m, reg.z_m, reg.heading_deg),
+                    keep=keep, search=(reg.xy_m, reg.z_m, reg.heading_deg),
                     reach={sid: submap_reach(df) for sid, df in submaps.items()}, max_xy_m=reg.max_xy_m)
                 extra["source"] = "retry"
         if len(extra):

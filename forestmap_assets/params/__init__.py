@@ -228,12 +228,17 @@ class RegistrationParams(_Stage):
     # score every pair by its matching stems (x, y, radius of the cylinder segments), search only
     # each scan's screen_keep best partners and a maximum spanning tree of the scores (at most
     # (screen_keep + 1) * N pairs); False or screen_keep 0: every pair (off in the structured
-    # presets, whose sub-maps are walls and pillar rows). 4, not 3: a network of many scans
-    # turns about its reference by the sum of its links' heading errors, and more loops hold it
-    # (51 scans on a 65 m plot: 120 -> 151 pairs, the farthest scans 2.0 -> 1.15 cm off, the
-    # network's rotation 0.018 -> 0.008 deg; benchmarks/results.md, "scale")
+    # presets, whose sub-maps are walls and pillar rows). Campaigns of more than
+    # screen_large_scans scans keep screen_keep_large partners: a network of many scans turns
+    # about its reference by the sum of its links' heading errors, and more loops hold it (51
+    # scans on a 65 m plot, 3 -> 4 partners: 120 -> 151 pairs, the farthest scans 2.0 -> 1.15 cm
+    # off, the network's rotation 0.018 -> 0.008 deg), where a 6-scan survey, placed within
+    # 0.3 cm either way, searched 14 pairs instead of 12 (benchmarks/results.md, "scale")
     screening: bool = True
-    screen_keep: int = 4
+    screen_keep: int = 3
+    screen_keep_large: int = 4
+    screen_large_scans: int = 12
+
     # a pair whose screening matched at least this many stems is searched in a box of
     # screen_box (xy m, heading deg) around the screening motion (accurate to about 1 cm and
     # 0.1 deg on Sylva's surveys), then in the no-prior box if that fails (0: always no-prior)
@@ -243,6 +248,12 @@ class RegistrationParams(_Stage):
     # +- this half-width (or 3 of its sd if larger), instead of +-z_m around 0: vertical stems
     # leave z loosely bound, and a quarter of the z range took a third less search; None: off
     screen_ground_hz_m: float | None = 0.3
+
+    def keep_for(self, n_scans: int) -> int:
+        """Screening partners a scan keeps in a campaign of ``n_scans`` scans (0: no screening)."""
+        if not self.screen_keep:
+            return 0
+        return self.screen_keep_large if n_scans > self.screen_large_scans else self.screen_keep
 
 
 class MappingParams(_Stage):

@@ -155,3 +155,14 @@ def test_well_matched_pairs_are_searched_around_their_screening_motion():
     other = candidate_pairs(["a", "c"], reach={"a": 14.0, "c": 14.0}, stems={"a": a, "c": c}, screen_keep=2,
                             screen_centre_min=8, screen_box=(1.0, 10.0))
     assert other.iloc[0].source == "no_prior" and other.iloc[0].hheading_deg == 180.0
+
+
+def test_large_campaigns_keep_more_partners():
+    """Campaigns of more than ``screen_large_scans`` scans keep ``screen_keep_large`` partners
+    (loops against the network's turning about its reference); ``screen_keep`` 0 screens none."""
+    from forestmap_assets.params import RegistrationParams
+
+    reg = RegistrationParams()
+    assert [reg.keep_for(n) for n in (6, 12, 13, 100)] == [3, 3, 4, 4]
+    assert RegistrationParams(screen_keep=0).keep_for(100) == 0
+    assert RegistrationParams(screen_keep_large=6, screen_large_scans=5).keep_for(6) == 6
