@@ -225,15 +225,11 @@ class RegistrationParams(_Stage):
     max_distance_m: float = 30.0
     max_xy_m: float = 20.0
     # candidate screening without a prior (core/registration/screening.py; inferred, issue 17):
-    # score every pair by its matching stems (x, y, radius of the cylinder segments), search only
-    # each scan's screen_keep best partners and a maximum spanning tree of the scores (at most
-    # (screen_keep + 1) * N pairs); False or screen_keep 0: every pair (off in the structured
-    # presets, whose sub-maps are walls and pillar rows). Campaigns of more than
-    # screen_large_scans scans keep screen_keep_large partners: a network of many scans turns
-    # about its reference by the sum of its links' heading errors, and more loops hold it (51
-    # scans on a 65 m plot, 3 -> 4 partners: 120 -> 151 pairs, the farthest scans 2.0 -> 1.15 cm
-    # off, the network's rotation 0.018 -> 0.008 deg), where a 6-scan survey, placed within
-    # 0.3 cm either way, searched 14 pairs instead of 12 (benchmarks/results.md, "scale")
+    # pairs scored by their matching stems (x, y, radius of the cylinder segments); searched:
+    # each scan's screen_keep best partners and a maximum spanning tree of the scores; False or
+    # 0: every pair (off in the structured presets: walls, pillar rows). Beyond
+    # screen_large_scans scans, screen_keep_large: loops hold a large network from turning
+    # about its reference (51 scans, 3 -> 4: farthest 2.0 -> 1.15 cm; results.md "scale")
     screening: bool = True
     screen_keep: int = 3
     screen_keep_large: int = 4
@@ -322,15 +318,13 @@ class TreeParams(_Stage):
     # this; 0: not) and the radius lies within caliper_one_sided_agree of the cylinders'
     caliper_one_sided_spread: float = 0.5
     caliper_one_sided_agree: float = 0.25
-    # widths of several directions fit w0 + a2 cos 2a + b2 sin 2a (an out-of-round section's
-    # width across the line of sight a), a2 and b2 with a prior sd of this share of w0: an
-    # ellipse of flattening f has c = f / (2 - f), 2.6-8 % for the 5-15 % of issue 19's stems
-    # (RMS about 5.7 %, 4 % for each of the two terms; 0: the weighted mean of the widths)
+    # widths of several directions fit w0 + a2 cos 2a + b2 sin 2a (stem_calipers.width_function),
+    # a2, b2 with a prior sd of this share of w0 (issue 19's 5-15 % flattening: c = f / (2 - f)
+    # has an RMS of about 5.7 %, 4 % a term; 0: the widths' weighted mean)
     caliper_ellipse_prior: float = 0.04
     slice_bin_deg: float = 10.0  # angle bins of the outline fit
-    # a bin farther than this from the outline the other bins fit (its leave-one-out residual
-    # in its own sd) is left out, the worst first (0: none): a branch or a neighbour's bark
-    # alone on the side no scan saw pulled the centre (Sylva survey 33: 46.4 cm read 51.6 cm)
+    # a bin farther than this from the outline of the others (leave-one-out residual in its
+    # own sd) is left out (0: none): stray points alone on the side no scan saw pull the centre
     slice_loo_sigmas: float = 3.5
     slice_min_points: int = 30
     # circumference with points, else the cylinders: an arc seen from one side (about 120 deg
