@@ -59,6 +59,7 @@ def mapping_assets(campaign: Campaign) -> list:
     from forestmap_assets.core.mapping.link_selection import select_links
     from forestmap_assets.core.mapping.objective_scale import objective_scale, scale_sd, widen_links
     from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
+    from forestmap_assets.core.mapping.residuals import variance_factors, with_variance_factors
     from forestmap_assets.core.mapping.trees import cylinders_to_global, merge_trees
 
     params = campaign.params
@@ -112,12 +113,14 @@ def mapping_assets(campaign: Campaign) -> list:
             poses = poses_table(campaign, sel.solution.poses)
             links = sel.links
             residuals = sel.solution.residuals
-        poses = scale_sd(poses, scale, mp.scale_sd_floor)
+        factors = variance_factors(residuals, int(poses["registered"].sum()), mp.variance_factor_min_dof)
+        poses = scale_sd(with_variance_factors(poses, factors), scale, mp.scale_sd_floor)
         bundle = {"poses": poses, "links": links, "residuals": residuals}
         meta = {
             "objective_scale_mm_per_m": round(1000 * scale, 4),
             "objective_scale_t": round(float(scale_t), 2) if np.isfinite(scale_t) else str(scale_t),
             "objective_scale_links": scale_n,
+            "variance_factors": MetadataValue.json([round(float(f), 3) for f in factors]),
             "registered": int(poses["registered"].sum()),
             "unregistered": MetadataValue.json(poses.loc[~poses["registered"], "scan"].tolist()),
             "admitted_links": int((links["status"] == "admitted").sum()) if len(links) else 0,

@@ -264,12 +264,15 @@ class MappingParams(_Stage):
     max_iterations: int = 50
     check_new_link: bool = True
     chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
-    # the refinement objectives' difference per metre of baseline counts as a scale of the
-    # network when its mean is this many standard errors from 0 (core/mapping/objective_scale)
+    # the refinement objectives' difference per metre of baseline: a scale of the network when
+    # its mean is this many standard errors from 0 (core/mapping/objective_scale)
     objective_scale_t: float = 3.0
-    # a scale of the network about the reference that no link shows, as a sigma only (per metre;
-    # core/mapping/objective_scale.scale_sd with the larger of this and the objectives' scale)
+    # a scale about the reference that no link shows, as a sigma only (per metre; the larger of
+    # this and the objectives' scale, core/mapping/objective_scale.scale_sd)
     scale_sd_floor: float = 0.0
+    # the poses' sigmas times the a posteriori variance factor's root where it exceeds 1, with
+    # this many redundant links or more (core/mapping/residuals.variance_factors; 0: never)
+    variance_factor_min_dof: int = 0
     # correlation of two observations sharing a scan (x, y, z, heading), for the pose sigmas
     # only (core/optimal_map.shared_scan_covariance; beyond the thesis; 0 = the thesis):
     # branch-and-bound links, and links whose pose the refinement stage replaced
@@ -291,12 +294,9 @@ class TreeParams(_Stage):
     # and those within 1.5 beam footprint radii of a scan's silhouette edge: mixed pixels
     # overhang the stem by up to a footprint (+3 cm in simulation), grazing bark reads high
     slice_edge_footprints: float = 1.5
-    # the footprint diameter beam_exit_m + beam_divergence_mrad x range; a campaign's sensor
-    # section sets both (the own simulator names the thesis scanner's, spec 1.1: 42 mm + 3 mrad);
-    # without one a survey-grade TLS beam (5 mm + 0.3 mrad): the thesis scanner's footprint left
-    # out 5 cm of each silhouette edge at 10 m, and on clouds rendered inside a registered TLS
-    # cloud 34-37 of 40 stems then showed less than 180 deg (benchmarks/results.md,
-    # "objective_scale")
+    # the footprint diameter beam_exit_m + beam_divergence_mrad x range, from a campaign's sensor
+    # section (the own simulator: spec 1.1's 42 mm + 3 mrad); else a survey-grade TLS beam (the
+    # thesis scanner's cut 5 cm off each edge at 10 m; results.md "objective_scale")
     beam_exit_m: float = 0.005
     beam_divergence_mrad: float = 0.3
     # DBH blended with the silhouettes' widths (core/mapping/stem_calipers.py): they need the
@@ -428,10 +428,10 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # reference of 0.06 mm/m RMS over 20 surveys, up to 0.15 (13, 18, 20), which the refinement
         # objectives' difference did not show (t < 3); scans' error / sd x / y, Sylva 1-8 0.94 /
         # 0.97 -> 0.81 / 0.85, with 13, 18, 20 1.18 / 1.12 -> 0.95 / 0.95 (within 2 sd 93 / 91 ->
-        # 98 / 98 %); rendered unchanged (their scale, 0.26-0.41 mm/m, is larger)
+        # 98 / 98 %); rendered unchanged. Variance factor: Sylva 36's loops closed 1.3 / 1.7 x worse
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05),
                     "refined_scan_correlation": (0.1, 0.1, 0.4, 0.15), "z_residual_sigmas": 5.0,
-                    "scale_sd_floor": 8e-5},
+                    "scale_sd_floor": 8e-5, "variance_factor_min_dof": 3},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         "registration": {"stem_polish": True},
