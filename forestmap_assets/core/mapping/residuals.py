@@ -135,4 +135,3 @@ def with_variance_factors(poses: pd.DataFrame, factors: np.ndarray) -> pd.DataFr
     for col, k in zip(SD_COLUMNS, f, strict=True):
         out[col] = out[col].to_numpy(float) * k
     return out
-

@@ -23,9 +23,10 @@ breast height, inside :mod:`.stem_slices`' gate):
 3. a side's distance is the mean over its lines within a pixel of their median (at least
    ``min_rows`` lines; a leaning, rough stem's edge crosses pixels from line to line), kept within
    ``radius_range`` (shares) of the tree's radius; a scan with both sides gives a width, and a
-   tree's caliper DBH is the mean of its scans' widths, weighted by their pixels' size; a tree
-   whose every scan saw one side only gets a circle fitted to the sides of several scans when
-   they surround the stem (:func:`_one_sided_dbh`).
+   tree's caliper DBH is the mean width of an out-of-round section fitted to its scans' widths
+   and their directions, weighted by their pixels' size (:func:`width_function`); a tree whose
+   every scan saw one side only gets a circle fitted to the sides of several scans when they
+   surround the stem (:func:`_one_sided_dbh`).
 
 :func:`blend_calipers` mixes that DBH with the outline's or the cylinders' (weight: the
 points' scatter about the outlines against the calipers' own error, the median sd of the
@@ -198,8 +199,7 @@ def width_function(widths: pd.DataFrame, ellipse_prior: float) -> pd.DataFrame:
     weighted mean). Widths from two directions 90 deg apart, or three 60 deg apart, average the
     ellipse out either way; two widths of equal weight give their mean (each can carry its own
     ellipse term); from three directions or more the fit takes out part of what the mean keeps.
-    A tree's
-    ``caliper_sd_m`` is its widths' own (the weighted mean's) and ``n_scans`` their number."""
+    A tree's ``caliper_sd_m`` is its widths' own (the weighted mean's), ``n_scans`` their number."""
     t = widths["tree"].to_numpy(int)
     trees, k = np.unique(t, return_inverse=True)
     w = widths["w"].to_numpy(float)
@@ -207,13 +207,11 @@ def width_function(widths: pd.DataFrame, ellipse_prior: float) -> pd.DataFrame:
     basis = np.column_stack([np.ones_like(y), widths["c2"].to_numpy(float), widths["s2"].to_numpy(float)])
     sw = np.bincount(k, w)
     mean = np.bincount(k, w * y) / sw
-    normal = np.zeros((trees.size, 3, 3))
-    rhs = np.zeros((trees.size, 3))
-    for i in range(3):
-        rhs[:, i] = np.bincount(k, w * basis[:, i] * y, minlength=trees.size)
-        for j in range(3):
-            normal[:, i, j] = np.bincount(k, w * basis[:, i] * basis[:, j], minlength=trees.size)
-    if ellipse_prior > 0:
+    if ellipse_prior > 0:  # per tree: the weighted normal equations, the prior on a2, b2
+        normal = np.zeros((trees.size, 3, 3))
+        rhs = np.zeros((trees.size, 3))
+        np.add.at(normal, k, w[:, None, None] * basis[:, :, None] * basis[:, None, :])
+        np.add.at(rhs, k, (w * y)[:, None] * basis)
         lam = 1.0 / (ellipse_prior * mean) ** 2
         normal[:, 1, 1] += lam
         normal[:, 2, 2] += lam
