@@ -309,15 +309,15 @@ class TreeParams(_Stage):
     caliper_half_height_m: float = 0.3  # silhouettes from 1.3 m -/+ this
     caliper_min_rows: int = 2  # scan lines a silhouette side needs
     caliper_width_sd_m: float = 0.008  # a scan's width beyond its pixels' quantisation
-    # a side's distance within these shares of the cylinders' radius (partial arcs can make that
-    # radius far too small; a side at half of it is a stem cut by an occluder)
+    # a side's distance within these shares of the cylinders' radius (a side at half: an occluder)
     caliper_radius_range: tuple[float, float] = (0.5, 2.0)
     caliper_edge_step_m: float = 0.3  # the first return beyond an edge lies this much farther
     # trees whose scans each saw one side: a circle about a free centre through the sides of
-    # several scans, when their normals spread around the stem (mean unit vector shorter than
-    # this; 0: not) and the radius lies within caliper_one_sided_agree of the cylinders'
+    # several scans whose normals spread (mean unit vector shorter than this; 0: not), its radius
+    # within caliper_one_sided_agree of the cylinders'; else caliper_side_min sides that agree
     caliper_one_sided_spread: float = 0.5
     caliper_one_sided_agree: float = 0.25
+    caliper_side_min: int = 2  # (0: not) give twice their mean distance from the axis
     # widths of several directions fit w0 + a2 cos 2a + b2 sin 2a (stem_calipers.width_function),
     # a2, b2 with a prior sd of this share of w0 (issue 19's 5-15 % flattening: c = f / (2 - f)
     # has an RMS of about 5.7 %, 4 % a term; 0: the widths' weighted mean)

@@ -105,7 +105,36 @@ def test_sides_of_several_scans_give_a_circle_where_no_scan_saw_both():
     assert cal["n_scans"].tolist() == [6]
     assert abs(cal["caliper_dbh_m"].iat[0] - 2 * r) <= np.radians(STEP_DEG) * 11.0 / 2
     crowded = edges[edges["scan"].isin(["S0", "S1"])]  # two sides 61 deg apart
-    assert caliper_dbh(crowded, np.array([0.14])).empty
+    assert caliper_dbh(crowded, np.array([0.14]), side_min=0).empty
+
+
+def test_sides_that_agree_give_a_radius_where_partial_arcs_shrank_the_cylinders():
+    """Two scans 20 deg apart, each seeing one side of a 0.30 m stem (the other hidden), the
+    cylinders' axis 6 cm too near the scanners and their radius 0.10 m: the sides crowd one
+    direction, so no circle about a free centre, but their mean distance from the axis (each
+    the support of the true circle at its normal: r plus the axis's offset along it, here
+    0.06 sin 10 deg) gives the diameter within 2.5 cm; sides that disagree by more than the
+    agree share give nothing."""
+    r, (cx, cy) = 0.15, (10.0, 0.37)
+    half = np.radians(10.0)
+    stems = stems_table(cx - 0.06 * np.cos(half), cy - 0.06 * np.sin(half), 0.10)
+    parts = []
+    for i, (d, a, keep) in enumerate(((9.0, 0.0, 1), (12.0, 2 * half, -1))):
+        sx, sy = cx - d * np.cos(a), cy - d * np.sin(a)
+        e = silhouette_edges(scan_table([(cx - sx, cy - sy, r)]), np.array([sx, sy, 0.0, 0.0]), stems,
+                             half_height_m=0.3, reach_m=np.array([0.35]), beam_exit_m=EXIT_M,
+                             beam_divergence_rad=DIV_RAD)
+        parts.append(e[e["side"] == keep].assign(scan=f"S{i}"))
+    edges = pd.concat(parts, ignore_index=True)
+    cal = caliper_dbh(edges, np.array([0.10]))
+    assert cal["n_scans"].tolist() == [2]
+    support = r + 0.06 * np.sin(half)
+    assert abs(cal["caliper_dbh_m"].iat[0] - 2 * support) <= np.radians(STEP_DEG) * 12.0
+    assert abs(cal["caliper_dbh_m"].iat[0] - 2 * r) <= 0.025
+    assert caliper_dbh(edges, np.array([0.10]), side_min=0).empty
+    assert caliper_dbh(edges, np.array([0.10]), side_min=3).empty  # two sides only
+    cut = edges.assign(h_m=np.where(edges["scan"] == "S1", 0.6 * edges["h_m"], edges["h_m"]))  # an occluder
+    assert caliper_dbh(cut, np.array([0.10])).empty
 
 
 def test_an_occluded_edge_gives_no_width():
