@@ -174,3 +174,25 @@ def test_a_lone_near_cylinder_far_too_small_gives_way_to_agreeing_ones():
     assert split["dbh_m"].iloc[0] == pytest.approx(0.126)
     thin, _ = merge_trees(_one_stem_from([(17.0, 0.063), (22.9, 0.08), (25.4, 0.08)]), grid)
     assert thin["dbh_m"].iloc[0] == pytest.approx(0.126)
+
+
+def test_the_cylinders_of_one_scan_too_small_give_way_like_a_lone_one():
+    """Own realistic seed 16: a 44 cm stem read 12.8 cm from two cylinders of one scan 17 m
+    away (a stub on the stem), where scans beyond 20 m read larger radii. One scan's cylinders
+    are one observation: they give way as a lone cylinder does. Others that agree within 30 %
+    (not 20 %) of their median still decide."""
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    near = pd.DataFrame([_cyl(0, (17.0, 0.0, 0.0), (0.0, 0.0), 0.063, 0.063, 0.5, 1.2, n=50),
+                         _cyl(1, (17.0, 0.0, 0.0), (0.0, 0.0), 0.057, 0.057, 1.2, 2.5, n=50)])
+    per_scan, poses = {"S0": near}, {"S0": (-17.0, 0.0, 0.0, 0.0)}
+    for k, (rng_m, radius, n) in enumerate([(22.5, 0.112, 150), (23.8, 0.139, 50), (28.6, 0.141, 50)], start=1):
+        per_scan[f"S{k}"] = pd.DataFrame([_cyl(0, (rng_m, 0.0, 0.0), (0.0, 0.0), radius, radius, 0.5, 2.5, n=n)])
+        poses[f"S{k}"] = (-rng_m, 0.0, 0.0, 0.0)
+    cyl = cylinders_to_global(per_scan, poses)
+    trees, _ = merge_trees(cyl, grid)
+    w = np.array([150, 50, 50]) / (0.042 + 0.003 * np.array([22.5, 23.8, 28.6])) ** 2
+    assert trees["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.112, 0.139, 0.141], weights=w))
+    assert "cylinders within 2 m of breast height" in trees["dbh_note"].iloc[0]
+    strict, _ = merge_trees(cyl, grid, lone_agree=0.2)  # 0.139 and 0.141 lie 24-26 % above 0.112
+    assert strict["dbh_m"].iloc[0] == pytest.approx(0.12)  # the near scan's two cylinders decide
+

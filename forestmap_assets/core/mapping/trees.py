@@ -216,6 +216,7 @@ def merge_trees(
     max_taper_m_per_m: float | None = 0.01,
     dbh_extrapolate_m: float = 2.0,
     lone_ratio: float | None = 1.4,
+    lone_agree: float = 0.3,
     small_share: float | None = 0.7,
 ) -> tuple[pd.DataFrame, np.ndarray]:
     """Trees (``TREE_COLUMNS``) from global cylinders; also each cylinder's tree id.
@@ -281,16 +282,21 @@ def merge_trees(
     realistic 7 2.29 -> 1.92; rendered 2 1.71 -> 1.76 and 3 1.81 -> 1.74; Sylva unchanged).
     A symmetric trim (0.75-1.5 times the median) was tried before the widths and gained 0.02 cm.
 
-    A lone near cylinder too small (inferred, issue 19): when one cylinder alone gives the DBH
-    and two or more others within ``dbh_extrapolate_m`` of breast height agree with each other
-    (within 20 % of their weighted median radius at breast height, taper limited as above) on a
-    radius ``lone_ratio`` (1.4) times its own or more, those others give the DBH. The one is a
-    stem's partial arc (a circle through a short arc of a half-hidden stem fits far too small)
-    or a thin stem merged with a thick one; its being nearest the scanner, or nearest breast
-    height, is why it alone was chosen. Own realistic-stem surveys 8 and 9: a 32 cm stem read
-    12 cm from one cylinder seen from 17 m, where three seen from 23-25 m read 34-35 cm, and a
-    47 cm stem read 28 cm from one 13 m away, where four higher up read 47-52 cm; DBH RMSE
-    3.53 / 3.25 -> 1.54 / 1.28 cm, and no other tree of 20 surveys (own, Sylva, rendered) moved.
+    A lone near cylinder too small (inferred, issue 19): when one cylinder, or the cylinders of
+    one scan, alone give the DBH and two or more others within ``dbh_extrapolate_m`` of breast
+    height agree with each other (within ``lone_agree`` of their weighted median radius at
+    breast height, taper limited as above) on a radius ``lone_ratio`` (1.4) times its own or
+    more, those others give the DBH. The one is a stem's partial arc (a circle through a short
+    arc of a half-hidden stem fits far too small), a stub on the stem, or a thin stem merged
+    with a thick one; its being nearest the scanner, or nearest breast height, is why it alone
+    was chosen. Own realistic-stem surveys 8 and 9: a 32 cm stem read 12 cm from one cylinder
+    seen from 17 m, where three seen from 23-25 m read 34-35 cm, and a 47 cm stem read 28 cm
+    from one 13 m away, where four higher up read 47-52 cm; DBH RMSE 3.53 / 3.25 -> 1.54 / 1.28
+    cm. One scan's cylinders and ``lone_agree`` 0.2 -> 0.3: a 44 cm stem read 12.8 cm from two
+    cylinders of one scan 17 m away (the others 14-26 cm, 22-29 m), and a 25 cm stem 12.9 cm
+    where the others read 22-28 cm; six full-resolution own realistic seeds 2.57 -> 1.33 cm
+    (seed 16 5.44 -> 1.09), ten stored ones 1.19 -> 1.20, Sylva, rendered and own circular
+    surveys unchanged (benchmarks/results.md "side_radius").
 
     ``dbh_note`` (text) is empty for a DBH from a cylinder spanning breast height above a seen
     ground; otherwise it says how the DBH was obtained (a cylinder end near breast height, an
@@ -359,10 +365,11 @@ def merge_trees(
                                        dbh_weights[m][pick],
                                        dbh_statistic)
             others = (gap <= dbh_extrapolate_m) & ~pick
-            if lone_ratio is not None and pick.sum() == 1 and others.sum() >= 2:
+            one_scan = pick.sum() == 1 or ("scan" in sub and sub["scan"][pick].nunique() == 1)
+            if lone_ratio is not None and one_scan and others.sum() >= 2:
                 r_o = _radius_at(sub[others], zb[others], max_taper_m_per_m, extrapolate=True)
                 med = _weighted_stat(r_o, dbh_weights[m][others], "median")
-                agree = np.abs(r_o - med) <= 0.2 * med
+                agree = np.abs(r_o - med) <= lone_agree * med
                 if agree.sum() >= 2 and med >= lone_ratio * dbh / 2:
                     lone = (f"DBH from {int(agree.sum())} cylinders within {dbh_extrapolate_m:g} m of "
                             f"breast height: the one nearest gave {100 * dbh:.1f} cm")
