@@ -244,3 +244,23 @@ def test_width_function_takes_out_the_ellipse_the_directions_show():
         assert abs(fit["caliper_dbh_m"].iat[0] - 2 * big_r) < 0.85 * abs(mean - 2 * big_r)
         assert fit["n_scans"].tolist() == [len(sight)]
         assert fit["caliper_sd_m"].iat[0] == pytest.approx(np.sqrt(1 / (1e4 * len(sight))))
+
+
+def test_a_width_is_judged_whole_when_the_axis_is_off_across_the_line_of_sight():
+    """Own realistic seed 18: a 37 cm stem whose axis lay 10 cm off across the view read 0.07
+    and 0.28 m on its two sides; the near side, under half the radius, was dropped and two far
+    sides from other scans read 51 cm. The width (their sum) does not move with the axis, so
+    it is kept, and the diameter comes out within a pixel; a width under half the radius
+    (an occluder) is still left out."""
+    r, (cx, cy) = 0.15, (10.0, 0.0)
+    stems = stems_table(cx, cy + 0.09, 0.14)  # off across the line of sight
+    e = silhouette_edges(scan_table([(cx, cy, r)]), np.array([0.0, 0.0, 0.0, 0.0]), stems,
+                         half_height_m=0.3, reach_m=np.array([0.35]), beam_exit_m=EXIT_M,
+                         beam_divergence_rad=DIV_RAD).assign(scan="A")
+    h = e.groupby("side")["h_m"].median()
+    assert h.min() < 0.5 * 0.14 < h.max()  # one side under half the radius
+    cal = caliper_dbh(e, np.array([0.14]))
+    assert cal["n_scans"].tolist() == [1]
+    assert abs(cal["caliper_dbh_m"].iat[0] - 2 * r) <= np.radians(STEP_DEG) * 10.0
+    assert caliper_dbh(e, np.array([0.35])).empty  # half the width under half this radius
+

@@ -21,10 +21,11 @@ breast height, inside :mod:`.stem_slices`' gate):
    edge's range (a first-return beam returns the stem while any part of its footprint touches
    it, spec 1.1), so the silhouette needs the campaign's beam (``sensor`` in campaign.yaml);
 3. a side's distance is the mean over its lines within a pixel of their median (at least
-   ``min_rows`` lines; a leaning, rough stem's edge crosses pixels from line to line), kept within
-   ``radius_range`` (shares) of the tree's radius; a scan with both sides gives a width, and a
-   tree's caliper DBH is the mean width of an out-of-round section fitted to its scans' widths
-   and their directions, weighted by their pixels' size (:func:`width_function`); a tree whose
+   ``min_rows`` lines; a leaning, rough stem's edge crosses pixels from line to line); a scan
+   with both sides gives a width, kept when its half lies within ``radius_range`` (shares) of
+   the tree's radius (a single side: its distance), and a tree's caliper DBH is the mean
+   width of an out-of-round section fitted to its scans' widths and their directions,
+   weighted by their pixels' size (:func:`width_function`); a tree whose
    every scan saw one side only gets a circle fitted to the sides of several scans when they
    surround the stem (:func:`_one_sided_dbh`), else twice the mean distance of two or more
    sides that agree (:func:`_side_radius_dbh`).
@@ -155,9 +156,11 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     silhouette edges of all scans (``EDGE_COLUMNS``; step 3 of the module docstring): the
     scans' widths weighted by their precision (the pixel across at the edge, ``quantum_m``,
     and ``width_sd_m`` for the footprint's model and the section's own widths);
-    ``radius_m`` (trees,) the trees' current radii, of which a side's distance must lie within
-    ``radius_range`` (shares: the cylinders' radius may be far too small where partial arcs made
-    it, but a side at half of it is a stem cut by an occluder the edge test missed). A tree
+    ``radius_m`` (trees,) the trees' current radii, of which half a width, or a single side's
+    distance, must lie within ``radius_range`` (shares: the cylinders' radius may be far too
+    small where partial arcs made it, but a side at half of it is a stem cut by an occluder the
+    edge test missed; an axis off across the line of sight moves a width's two sides by
+    opposite amounts, so a width is judged whole). A tree
     without a width from any scan may still get one from sides of several scans
     (:func:`_one_sided_dbh`, with ``one_sided_spread``; None: not), else from ``side_min`` or
     more sides that agree (:func:`_side_radius_dbh`; 0: not). The widths of several
@@ -174,13 +177,17 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
                                                     quantum=("quantum_m", "median"),
                                                     phi=("phi", "median")).reset_index()
     r = radius_m[sides["tree"].to_numpy(int)]
-    ok = (sides["size"] >= min_rows) & (sides["h"] >= radius_range[0] * r) & (sides["h"] <= radius_range[1] * r)
-    sides = sides[ok.to_numpy()]
+    in_range = ((sides["h"] >= radius_range[0] * r) & (sides["h"] <= radius_range[1] * r)).to_numpy()
+    sides = sides.assign(in_range=in_range)[(sides["size"] >= min_rows).to_numpy()]
     # a width's direction: its sides' normals (opposite), doubled
     sides = sides.assign(c2=np.cos(2 * sides["phi"]), s2=np.sin(2 * sides["phi"]))
     both = sides.groupby(["tree", "scan"]).agg(width=("h", "sum"), n=("side", "size"), quantum=("quantum", "max"),
                                                c2=("c2", "mean"), s2=("s2", "mean")).reset_index()
-    both = both[both["n"] == 2]
+    # a width is kept in range as a whole: an axis off across the line of sight moves its two
+    # sides by opposite amounts and leaves their sum alone (one side may read under half)
+    half = 0.5 * both["width"] / radius_m[both["tree"].to_numpy(int)]
+    both = both[((both["n"] == 2) & (half >= radius_range[0]) & (half <= radius_range[1])).to_numpy()]
+    sides = sides[sides["in_range"].to_numpy()]  # single sides: each in range
     # a width's variance: each side's edge uniform within one pixel across, plus width_sd_m
     both["w"] = 1.0 / (both["quantum"] ** 2 / 6.0 + width_sd_m**2)
     out = width_function(both, ellipse_prior)
