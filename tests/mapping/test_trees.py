@@ -196,3 +196,18 @@ def test_the_cylinders_of_one_scan_too_small_give_way_like_a_lone_one():
     strict, _ = merge_trees(cyl, grid, lone_agree=0.2)  # 0.139 and 0.141 lie 24-26 % above 0.112
     assert strict["dbh_m"].iloc[0] == pytest.approx(0.12)  # the near scan's two cylinders decide
 
+
+def test_a_near_scans_heavy_small_cylinders_do_not_set_the_median_alone():
+    """Own realistic seed 22: a 20 cm stem read 11 cm because a scan 7 m away saw a thin object
+    on its side (two cylinders, r 4 cm, many circles, small footprints) and outweighed two
+    scans that read r 9.5 cm. The small-cylinder rule's median is one vote a scan."""
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    per_scan = {"S0": pd.DataFrame([_cyl(0, (7.0, 0.0, 0.0), (0.0, 0.0), 0.037, 0.037, 0.3, 1.0, n=130),
+                                    _cyl(1, (7.0, 0.0, 0.0), (0.0, 0.0), 0.045, 0.045, 1.0, 2.5, n=130)]),
+                "S1": pd.DataFrame([_cyl(0, (12.0, 0.0, 0.0), (0.0, 0.0), 0.096, 0.096, 0.3, 2.0, n=43)]),
+                "S2": pd.DataFrame([_cyl(0, (14.0, 0.0, 0.0), (0.0, 0.0), 0.093, 0.093, 0.3, 2.0, n=58)])}
+    poses = {"S0": (-7.0, 0.0, 0.0, 0.0), "S1": (-12.0, 0.0, 0.0, 0.0), "S2": (-14.0, 0.0, 0.0, 0.0)}
+    trees, _ = merge_trees(cylinders_to_global(per_scan, poses), grid)
+    w = np.array([43, 58]) / (0.042 + 0.003 * np.array([12.0, 14.0])) ** 2
+    assert trees["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.096, 0.093], weights=w))
+
