@@ -114,7 +114,7 @@ def test_sides_that_agree_give_a_radius_where_partial_arcs_shrank_the_cylinders(
     direction, so no circle about a free centre, but their mean distance from the axis (each
     the support of the true circle at its normal: r plus the axis's offset along it, here
     0.06 sin 10 deg) gives the diameter within 2.5 cm; sides that disagree by more than the
-    agree share give nothing."""
+    agree share, or read under 1 - agree of the tree's radius, give nothing."""
     r, (cx, cy) = 0.15, (10.0, 0.37)
     half = np.radians(10.0)
     stems = stems_table(cx - 0.06 * np.cos(half), cy - 0.06 * np.sin(half), 0.10)
@@ -133,6 +133,7 @@ def test_sides_that_agree_give_a_radius_where_partial_arcs_shrank_the_cylinders(
     assert abs(cal["caliper_dbh_m"].iat[0] - 2 * r) <= 0.025
     assert caliper_dbh(edges, np.array([0.10]), side_min=0).empty
     assert caliper_dbh(edges, np.array([0.10]), side_min=3).empty  # two sides only
+    assert caliper_dbh(edges, np.array([0.25]), one_sided_spread=None).empty  # under 75 % of the radius
     cut = edges.assign(h_m=np.where(edges["scan"] == "S1", 0.6 * edges["h_m"], edges["h_m"]))  # an occluder
     assert caliper_dbh(cut, np.array([0.10])).empty
 
