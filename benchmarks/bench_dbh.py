@@ -32,20 +32,21 @@ def tree_lists(root: Path) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd
     from forestmap_assets.access import load_asset
     from forestmap_assets.core.features.elevation import elevation_from_table
     from forestmap_assets.core.mapping.stem_calipers import tree_dbh
-    from forestmap_assets.core.mapping.trees import merge_trees
+    from forestmap_assets.core.mapping.trees import beam_options, merge_trees
     from forestmap_assets.io.campaign import load_campaign
 
     camp = load_campaign(root)
     im = load_asset("integrated_map", campaign=root)
     grid = elevation_from_table(im["elevation"])
-    cylinders, tree_of = merge_trees(im["cylinders"], grid)
+    tp = camp.params.trees
+    cylinders, tree_of = merge_trees(im["cylinders"], grid,
+                                     **beam_options(tp.beam_exit_m, 1e-3 * tp.beam_divergence_mrad))
     poses = im["scans"]
     clouds, images = {}, {}
     for sid in poses["scan"]:
         image = load_asset("range_images", campaign=root, scan=sid)
         clouds[sid] = image.xyz[image.valid]
         images[sid] = image.to_table()
-    tp = camp.params.trees
     sliced, _ = tree_dbh(cylinders, im["cylinders"], tree_of, clouds, poses, tp.model_copy(update={"calipers": False}))
     blended, fits = tree_dbh(cylinders, im["cylinders"], tree_of, clouds, poses,
                              tp.model_copy(update={"calipers": True}), images=images)

@@ -60,7 +60,7 @@ def mapping_assets(campaign: Campaign) -> list:
     from forestmap_assets.core.mapping.objective_scale import objective_scale, scale_sd, widen_links
     from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
     from forestmap_assets.core.mapping.residuals import variance_factors, with_variance_factors
-    from forestmap_assets.core.mapping.trees import cylinders_to_global, merge_trees
+    from forestmap_assets.core.mapping.trees import beam_options, cylinders_to_global, merge_trees
 
     params = campaign.params
     reference = campaign.scan_ids[0]
@@ -212,7 +212,8 @@ def mapping_assets(campaign: Campaign) -> list:
     @timed
     def tree_list(context, integrated_map, **raw):  # raw: {"range_images": ...} with the slice DBH
         grid = elevation_from_table(integrated_map["elevation"])
-        trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid)
+        trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid,
+                                         **beam_options(tp.beam_exit_m, 1e-3 * tp.beam_divergence_mrad))
         from_slice = from_calipers = 0
         if by_slice:
             from forestmap_assets.core.mapping.stem_calipers import tree_dbh

@@ -9,7 +9,12 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.core.geometry import compose, relative_pose, transform_points, wrap_deg
-from forestmap_assets.core.mapping.trees import cylinders_to_global, ground_under, merge_trees
+from forestmap_assets.core.mapping.trees import (
+    beam_options,
+    cylinders_to_global,
+    ground_under,
+    merge_trees,
+)
 
 
 def _cyl(cid, base, lean, r0, r1, z0, z1, n=10):
@@ -210,4 +215,22 @@ def test_a_near_scans_heavy_small_cylinders_do_not_set_the_median_alone():
     trees, _ = merge_trees(cylinders_to_global(per_scan, poses), grid)
     w = np.array([43, 58]) / (0.042 + 0.003 * np.array([12.0, 14.0])) ** 2
     assert trees["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.096, 0.093], weights=w))
+
+
+def test_a_narrow_beam_lets_far_cylinders_give_the_dbh():
+    """Sylva 41: a 48.6 cm stem read 41.4 cm from the one cylinder within 20 m, where four from
+    19-30 m read 46-50 cm. The near rule's 20 m holds for the own simulator's 42 mm + 3 mrad
+    beam; a survey-grade beam (5 mm + 0.3 mrad) does not widen far stems, so all take part."""
+    own = beam_options(0.042, 0.003)
+    assert own["dbh_max_range_m"] == pytest.approx(20.0)
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    cyl = _one_stem_from([(15.7, 0.207), (19.1, 0.23), (21.8, 0.245), (28.0, 0.245), (29.8, 0.24)])
+    near, _ = merge_trees(cyl, grid, **own)
+    assert near["dbh_m"].iloc[0] == pytest.approx(2 * np.average(
+        [0.207, 0.23], weights=1 / (0.042 + 0.003 * np.array([15.7, 19.1])) ** 2))
+    narrow = beam_options(0.005, 0.0003)
+    assert narrow["dbh_max_range_m"] > 300
+    far, _ = merge_trees(cyl, grid, **narrow)
+    w = 1 / (0.005 + 0.0003 * np.array([15.7, 19.1, 21.8, 28.0, 29.8])) ** 2
+    assert far["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.207, 0.23, 0.245, 0.245, 0.24], weights=w))
 
