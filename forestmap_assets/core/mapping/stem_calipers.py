@@ -60,6 +60,7 @@ if TYPE_CHECKING:
 
 EDGE_COLUMNS = ["tree", "scan", "side", "row", "h_m", "range_m", "quantum_m", "phi"]
 EDGE_COLUMNS_NEEDED = ["row", "col", "range_m", "x", "y", "z"]
+CALIPER_COLUMNS = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"]
 MAX_LOOK_PIXELS = 64
 
 
@@ -165,9 +166,8 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     (:func:`_one_sided_dbh`, with ``one_sided_spread``; None: not), else from ``side_min`` or
     more sides that agree (:func:`_side_radius_dbh`; 0: not). The widths of several
     directions fit an out-of-round section (:func:`width_function`, ``ellipse_prior``)."""
-    cols = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"]
     if edges.empty:
-        return pd.DataFrame({c: pd.Series(dtype="float64") for c in cols})
+        return _no_calipers()
     key = ["tree", "scan", "side"]
     med = edges.groupby(key)["h_m"].transform("median")
     # the mean of the lines within a pixel of the side's median: a leaning or rough stem's edge
@@ -190,8 +190,7 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     sides = sides[sides["in_range"].to_numpy()]  # single sides: each in range
     # a width's variance: each side's edge uniform within one pixel across, plus width_sd_m
     both["w"] = 1.0 / (both["quantum"] ** 2 / 6.0 + width_sd_m**2)
-    out = width_function(both, ellipse_prior)
-    out = out[cols]
+    out = width_function(both, ellipse_prior)[CALIPER_COLUMNS]
     if one_sided_spread is not None:
         rest = sides[~sides["tree"].isin(out["tree"])]
         extra = _one_sided_dbh(rest, radius_m, one_sided_spread, one_sided_agree, width_sd_m)
@@ -235,6 +234,16 @@ def width_function(widths: pd.DataFrame, ellipse_prior: float) -> pd.DataFrame:
                          "n_scans": np.bincount(k)})
 
 
+def _no_calipers() -> pd.DataFrame:
+    return pd.DataFrame({c: pd.Series(dtype="float64") for c in CALIPER_COLUMNS})
+
+
+def _side_weights(sides: pd.DataFrame, width_sd_m: float) -> np.ndarray:
+    """A single side's inverse variance: its edge uniform within one pixel across
+    (``quantum``), plus half of ``width_sd_m``."""
+    return 1.0 / (sides["quantum"].to_numpy(float) ** 2 / 12.0 + (0.5 * width_sd_m) ** 2)
+
+
 def _one_sided_dbh(sides: pd.DataFrame, radius_m: np.ndarray, spread: float, agree: float,
                    width_sd_m: float) -> pd.DataFrame:
     """Caliper DBH of trees whose scans each saw one silhouette side only (the other hidden):
@@ -250,14 +259,14 @@ def _one_sided_dbh(sides: pd.DataFrame, radius_m: np.ndarray, spread: float, agr
         if len(g) < 3 or g["scan"].nunique() < 2 or np.abs(np.exp(1j * phi).mean()) > spread:
             continue
         a_mat = np.column_stack([np.ones(phi.size), np.cos(phi), np.sin(phi)])
-        w = 1.0 / (g["quantum"].to_numpy(float) ** 2 / 12.0 + (0.5 * width_sd_m) ** 2)
+        w = _side_weights(g, width_sd_m)
         normal = a_mat.T @ (a_mat * w[:, None])
         a = np.linalg.solve(normal, a_mat.T @ (w * g["h"].to_numpy(float)))
         r0 = radius_m[int(t)]
         if abs(a[0] - r0) > agree * r0 or np.hypot(a[1], a[2]) > r0:
             continue
         rows.append((int(t), 2.0 * a[0], 2.0 * float(np.sqrt(np.linalg.inv(normal)[0, 0])), int(g["scan"].nunique())))
-    return pd.DataFrame(rows, columns=["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"])
+    return pd.DataFrame(rows, columns=CALIPER_COLUMNS)
 
 
 def _side_radius_dbh(sides: pd.DataFrame, radius_m: np.ndarray, side_min: int, agree: float,
@@ -273,10 +282,9 @@ def _side_radius_dbh(sides: pd.DataFrame, radius_m: np.ndarray, side_min: int, a
     without / with, cm): stored 1-3, 7-13 1.23 / 1.20, bench_dbh seeds 4-6, 14-16 1.65 / 1.32,
     17-22 1.41 / 1.27, 23-28 1.30 / 1.31 (the floor set here), 29-34 1.83 / 1.76
     (benchmarks/results.md "side_radius")."""
-    cols = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"]
     if sides.empty:
-        return pd.DataFrame({c: pd.Series(dtype="float64") for c in cols})
-    w = 1.0 / (sides["quantum"].to_numpy(float) ** 2 / 12.0 + (0.5 * width_sd_m) ** 2)
+        return _no_calipers()
+    w = _side_weights(sides, width_sd_m)
     g = sides.assign(w=w, wh=w * sides["h"].to_numpy(float)).groupby("tree")
     a = g.agg(sw=("w", "sum"), swh=("wh", "sum"), lo=("h", "min"), hi=("h", "max"), n=("h", "size"),
               n_scans=("scan", "nunique"))

@@ -303,17 +303,17 @@ def merge_trees(
     Cylinders that read small (inferred, issue 19): of three or more cylinders giving the DBH,
     those whose radius at breast height is below ``small_share`` (0.7) of the median over their
     scans (each scan's weighted mean, :func:`_scan_median`) are left out while two or more
-    remain. It was their weighted median, which a near scan's two cylinders set alone on own
-    realistic seed 22: a 20.2 cm stem read 11.1 cm (now 20.6) from a thin object on its side,
-    r 4 cm, 7 m away; bench_dbh 17-22 1.40 -> 1.27 cm, no other set moved by more than 0.01
-    (own realistic 1-3, 7-13, 4-6, 14-16, own circular, Sylva, rendered). A circle through a
-    short arc of a half-hidden stem fits far too small, and a near scan's weight (its small
-    footprint) let one such cylinder pull the mean: own realistic survey 7, a 37 cm stem read
-    29 cm, its 8.6 cm-radius cylinder from
-    3.5 m outweighing six that read 17-18 cm. Stored surveys, DBH RMSE pooled over own, Sylva and
-    rendered (27 surveys, silhouette widths where the beam is named): 1.66 -> 1.60 cm (own
-    realistic 7 2.29 -> 1.92; rendered 2 1.71 -> 1.76 and 3 1.81 -> 1.74; Sylva unchanged).
-    A symmetric trim (0.75-1.5 times the median) was tried before the widths and gained 0.02 cm.
+    remain. A circle through a short arc of a half-hidden stem fits far too small, and a near
+    scan's weight (its small footprint) let one such cylinder pull the mean: own realistic
+    survey 7, a 37 cm stem read 29 cm, its 8.6 cm-radius cylinder from 3.5 m outweighing six
+    that read 17-18 cm. Stored surveys, DBH RMSE pooled over own, Sylva and rendered (27
+    surveys, silhouette widths where the beam is named): 1.66 -> 1.60 cm (own realistic 7 2.29
+    -> 1.92; rendered 2 1.71 -> 1.76 and 3 1.81 -> 1.74; Sylva unchanged). A symmetric trim
+    (0.75-1.5 times the median) was tried before the widths and gained 0.02 cm. The median was
+    the cylinders' weighted one, which a near scan's two cylinders set alone on own realistic
+    seed 22: a 20.2 cm stem read 11.1 cm (now 20.6) from a thin object on its side, r 4 cm,
+    7 m away; bench_dbh 17-22 1.40 -> 1.27 cm, no other set moved by more than 0.01 (own
+    realistic 1-3, 7-13, 4-6, 14-16, own circular, Sylva, rendered).
 
     A lone near cylinder too small (inferred, issue 19): when one cylinder, or the cylinders of
     one scan, alone give the DBH and two or more others within ``dbh_extrapolate_m`` of breast
