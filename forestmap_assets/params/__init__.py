@@ -306,7 +306,7 @@ class TreeParams(_Stage):
     # ref the calipers' own error, this factor x the median sd of the trees' caliper DBH (their
     # pixels' size and caliper_width_sd_m)
     caliper_sd_factor: float = 1.0
-    caliper_half_height_m: float = 0.3  # silhouettes from 1.3 m -/+ this
+    caliper_half_height_m: float = 0.6  # silhouettes from 1.3 m -/+ this (more lines dither an edge)
     caliper_min_rows: int = 2  # scan lines a silhouette side needs
     caliper_width_sd_m: float = 0.008  # a scan's width beyond its pixels' quantisation
     # a side's distance within these shares of the cylinders' radius (a side at half: an occluder)
