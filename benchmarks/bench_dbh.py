@@ -5,8 +5,9 @@ For each stem model (``realistic``, ``circular``) and seed: simulate a campaign 
 scans, half resolution), run the pipeline, then compute the tree list of the same integrated
 map and stored range images three ways: ``trees.dbh_method`` ``cylinders`` (the DBH before
 issue 19), ``slice`` (core/mapping/stem_slices.py) and ``slice`` blended with the silhouettes'
-widths (``trees.calipers``, core/mapping/stem_calipers.py; the simulator names its beam, so a
-run uses them), and compare with the truth (matched trees, ``sim.evaluate.dbh_errors``).
+widths and with one outline through the slice and the silhouette sides (``trees.calipers``,
+core/mapping/stem_calipers.py, stem_outline.py; the simulator names its beam, so a run uses
+them), and compare with the truth (matched trees, ``sim.evaluate.dbh_errors``).
 Prints a table and writes the ``dbh`` section of ``benchmarks/results.md``.
 
     python benchmarks/bench_dbh.py --seeds 1 2 --resolution half --work /tmp/dbh
@@ -100,11 +101,12 @@ def report(rows: list[dict], args) -> str:
         "per campaign; the tree list of the same integrated map and range images computed with "
         "`trees.dbh_method: cylinders` (before issue 19), `slice` (the merged breast-height "
         "slice, core/mapping/stem_slices.py) and `slice` blended with the silhouettes' widths "
-        "(`trees.calipers`, core/mapping/stem_calipers.py; a run of these campaigns uses them). "
+        "and the outline through the slice and the sides (`trees.calipers`, "
+        "core/mapping/stem_calipers.py, stem_outline.py; a run of these campaigns uses them). "
         "Matched trees with a DBH every way (truth match within 0.5 m); bias = mean(estimate - "
         f"truth). Machine: {platform.machine()}, {os.cpu_count()} cores (shared).",
         "",
-        "| stems | seed | matched trees | slice used / with widths / trees | DBH RMSE cylinders (cm) | slice (cm) | slice + widths (cm) | bias cylinders / slice + widths (cm) | RMSE trees seen from >= 2 scans, cylinders -> slice + widths (cm) | DBH step (s) |",
+        "| stems | seed | matched trees | slice used / with widths / trees | DBH RMSE cylinders (cm) | slice (cm) | slice + widths + outline (cm) | bias cylinders / slice + widths + outline (cm) | RMSE trees seen from >= 2 scans, cylinders -> slice + widths + outline (cm) | DBH step (s) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:

@@ -207,14 +207,16 @@ def mapping_assets(campaign: Campaign) -> list:
         "beyond the thesis; core/mapping/trees.py). With trees.dbh_method 'slice' the DBH is the "
         "mean diameter of an outline fitted to the registered points of every scan in a slice "
         "at breast height, the cylinders' where the slice has too few points "
-        "(core/mapping/stem_slices.py).",
+        "(core/mapping/stem_slices.py); where the campaign names its beam, blended with the "
+        "silhouettes' widths (stem_calipers.py) and with one outline fitted to the slice and "
+        "the silhouette sides together (stem_outline.py).",
     )
     @timed
     def tree_list(context, integrated_map, **raw):  # raw: {"range_images": ...} with the slice DBH
         grid = elevation_from_table(integrated_map["elevation"])
         trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid,
                                          **beam_options(tp.beam_exit_m, 1e-3 * tp.beam_divergence_mrad))
-        from_slice = from_calipers = 0
+        from_slice = from_calipers = from_outline = 0
         if by_slice:
             from forestmap_assets.core.mapping.stem_calipers import tree_dbh
             from forestmap_assets.core.mapping.stem_slices import slice_clouds
@@ -223,11 +225,12 @@ def mapping_assets(campaign: Campaign) -> list:
             trees, fits = tree_dbh(trees, integrated_map["cylinders"], tree_of_cyl, clouds, integrated_map["scans"],
                                    tp, images=raw.get("range_images") if tp.calipers else None)
             from_calipers = int((fits["caliper_scans"] > 0).sum()) if tp.calipers else 0
+            from_outline = int(fits["outline_dbh_m"].notna().sum()) if "outline_dbh_m" in fits else 0
             from_slice = int((fits["reason"] == "").sum())
         dbh = trees["dbh_m"].dropna()
         noted = trees["dbh_note"].astype(bool)
         meta = {"trees": len(trees), "with_dbh": int(len(dbh)), "dbh_from_slice": from_slice,
-                "dbh_with_silhouette_widths": from_calipers,
+                "dbh_with_silhouette_widths": from_calipers, "dbh_with_outline": from_outline,
                 "dbh_with_note": int((noted & trees["dbh_m"].notna()).sum()),
                 "median_dbh_m": round(float(dbh.median()), 3) if len(dbh) else 0.0,
                 "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum()),

@@ -294,17 +294,15 @@ class TreeParams(_Stage):
     # and those within 1.5 beam footprint radii of a scan's silhouette edge: mixed pixels
     # overhang the stem by up to a footprint (+3 cm in simulation), grazing bark reads high
     slice_edge_footprints: float = 1.5
-    # the footprint diameter beam_exit_m + beam_divergence_mrad x range, from a campaign's sensor
-    # section (the own simulator: spec 1.1's 42 mm + 3 mrad); else a survey-grade TLS beam (the
-    # thesis scanner's cut 5 cm off each edge at 10 m; results.md "objective_scale")
+    # footprint diameter beam_exit_m + beam_divergence_mrad x range, from campaign.yaml's sensor
+    # (own simulator: spec 1.1's 42 mm + 3 mrad); else a survey-grade TLS beam
     beam_exit_m: float = 0.005
     beam_divergence_mrad: float = 0.3
     # DBH blended with the silhouettes' widths (core/mapping/stem_calipers.py): they need the
     # beam's footprint, so campaign.yaml's sensor section turns them on when it names the beam
     calipers: bool = False
-    # the blend's weight is s^2 / (s^2 + ref^2): s the points' scatter about the stems' outlines,
-    # ref the calipers' own error, this factor x the median sd of the trees' caliper DBH (their
-    # pixels' size and caliper_width_sd_m)
+    # blend weight s^2 / (s^2 + ref^2): s the points' scatter about the outlines, ref this factor
+    # x the median sd of the trees' caliper DBH (their pixels' size and caliper_width_sd_m)
     caliper_sd_factor: float = 1.0
     caliper_half_height_m: float = 0.6  # silhouettes from 1.3 m -/+ this (more lines dither an edge)
     caliper_min_rows: int = 2  # scan lines a silhouette side needs
@@ -312,19 +310,22 @@ class TreeParams(_Stage):
     # a side's distance within these shares of the cylinders' radius (a side at half: an occluder)
     caliper_radius_range: tuple[float, float] = (0.5, 2.0)
     caliper_edge_step_m: float = 0.3  # the first return beyond an edge lies this much farther
-    # trees whose scans each saw one side: a circle about a free centre through the sides of
-    # several scans whose normals spread (mean unit vector shorter than this; 0: not), its radius
-    # within caliper_one_sided_agree of the cylinders'; else caliper_side_min sides that agree
+    # one side a scan: a circle through the sides of several scans whose normals spread (their mean
+    # unit vector shorter; 0: not) within caliper_one_sided_agree; else caliper_side_min sides
     caliper_one_sided_spread: float = 0.5
     caliper_one_sided_agree: float = 0.25
     caliper_side_min: int = 2  # (0: not) give twice their mean distance from the axis
     # widths of several directions fit w0 + a2 cos 2a + b2 sin 2a (stem_calipers.width_function),
-    # a2, b2 with a prior sd of this share of w0 (issue 19's 5-15 % flattening: c = f / (2 - f)
-    # has an RMS of about 5.7 %, 4 % a term; 0: the widths' weighted mean)
+    # a2, b2 with a prior sd of this share of w0 (5-15 % flattening; 0: the weighted mean)
     caliper_ellipse_prior: float = 0.04
+    # one outline through the slice and the sides (stem_outline.py), blended with the DBH so far
+    # (its error, 0: not) by its own sd; a side's weight over its pixel's, rejected beyond
+    outline_ref_sd_m: float = 0.010
+    outline_side_weight: float = 4.0
+    outline_side_reject_m: float = 0.02
     slice_bin_deg: float = 10.0  # angle bins of the outline fit
-    # a bin farther than this from the outline of the others (leave-one-out residual in its
-    # own sd) is left out (0: none): stray points alone on the side no scan saw pull the centre
+    # a bin this far from the others' outline (leave-one-out, in its sd) is left out (0: none):
+    # stray points alone on the side no scan saw pull the centre
     slice_loo_sigmas: float = 3.5
     slice_min_points: int = 30
     # circumference with points, else the cylinders: an arc seen from one side (about 120 deg
@@ -333,8 +334,7 @@ class TreeParams(_Stage):
     slice_ellipse_prior: float = 0.05  # sd of the ellipse terms, share of the mean radius
     slice_trim_sigmas: float = 3.0  # points farther from the outline are outliers (branches)
     slice_outline_sd_m: float = 0.005  # relief of the outline a bin mean cannot average out (bark)
-    # sd of the cylinders' radius as the prior of the slice's mean radius (0: none): a stem seen
-    # from one side only keeps about its cylinder DBH, one seen all round takes the slice's
+    # sd of the cylinders' radius as the slice's prior of the mean radius (0: none)
     slice_cylinder_sd_m: float = 0.01
     slice_max_change: float = 0.5  # slice DBH further than this share from the cylinders': cylinders
     range_sigma_m: float = 0.025  # range noise (Table 6.1), for the bias of noisy point distances

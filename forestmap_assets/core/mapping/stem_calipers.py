@@ -47,11 +47,13 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.geometry import rot_z, transform_points
+from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_dbhs
 from forestmap_assets.core.mapping.stem_slices import (
     MAX_SLOPE,
     StemCells,
     merged_slice_dbh,
     slice_members,
+    slice_points,
     slice_stems,
 )
 
@@ -168,17 +170,10 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     directions fit an out-of-round section (:func:`width_function`, ``ellipse_prior``)."""
     if edges.empty:
         return _no_calipers()
-    key = ["tree", "scan", "side"]
-    med = edges.groupby(key)["h_m"].transform("median")
-    # the mean of the lines within a pixel of the side's median: a leaning or rough stem's edge
-    # crosses pixels from line to line, so the mean resolves what one line cannot
-    near = np.abs(edges["h_m"] - med) <= edges["quantum_m"]
-    sides = edges[near.to_numpy()].groupby(key).agg(h=("h_m", "mean"), size=("h_m", "size"),
-                                                    quantum=("quantum_m", "median"),
-                                                    phi=("phi", "median")).reset_index()
+    sides = side_table(edges, min_rows)
     r = radius_m[sides["tree"].to_numpy(int)]
     in_range = ((sides["h"] >= radius_range[0] * r) & (sides["h"] <= radius_range[1] * r)).to_numpy()
-    sides = sides.assign(in_range=in_range)[(sides["size"] >= min_rows).to_numpy()]
+    sides = sides.assign(in_range=in_range)
     # a width's direction: its sides' normals (opposite), doubled
     sides = sides.assign(c2=np.cos(2 * sides["phi"]), s2=np.sin(2 * sides["phi"]))
     both = sides.groupby(["tree", "scan"]).agg(width=("h", "sum"), n=("side", "size"), quantum=("quantum", "max"),
@@ -200,6 +195,20 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
         extra = _side_radius_dbh(rest, radius_m, side_min, one_sided_agree, width_sd_m)
         out = pd.concat([out, extra], ignore_index=True) if len(extra) else out
     return out
+
+
+def side_table(edges: pd.DataFrame, min_rows: int) -> pd.DataFrame:
+    """One row per tree, scan and silhouette side seen on ``min_rows`` or more lines: ``h`` the
+    mean distance of the lines within a pixel of the side's median (a leaning or rough stem's
+    edge crosses pixels from line to line, so the mean resolves what one line cannot), ``size``
+    those lines, ``quantum`` the pixel across, ``phi`` the outward normal."""
+    key = ["tree", "scan", "side"]
+    med = edges.groupby(key)["h_m"].transform("median")
+    near = np.abs(edges["h_m"] - med) <= edges["quantum_m"]
+    sides = edges[near.to_numpy()].groupby(key).agg(h=("h_m", "mean"), size=("h_m", "size"),
+                                                    quantum=("quantum_m", "median"),
+                                                    phi=("phi", "median")).reset_index()
+    return sides[(sides["size"] >= min_rows).to_numpy()].reset_index(drop=True)
 
 
 def width_function(widths: pd.DataFrame, ellipse_prior: float) -> pd.DataFrame:
@@ -296,10 +305,22 @@ def _side_radius_dbh(sides: pd.DataFrame, radius_m: np.ndarray, side_min: int, a
                          "n_scans": a["n_scans"].to_numpy()[keep]})
 
 
-def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp) -> pd.DataFrame:
+def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp,
+                  edges: pd.DataFrame | None = None) -> pd.DataFrame:
     """:func:`caliper_dbh` of ``stems`` (``x, y, zbh, radius_m, slope_x, slope_y``, global
-    frame; rows are the trees) over every placed scan's range image in ``tables``; ``tp`` the
-    tree parameter section (``params.TreeParams``)."""
+    frame; rows are the trees) from their :func:`tree_edges` (``edges``, if the caller has
+    them); ``tp`` the tree parameter section (``params.TreeParams``)."""
+    edges = tree_edges(tables, poses, stems, tp) if edges is None else edges
+    radius = np.nan_to_num(stems["radius_m"].to_numpy(float), nan=0.0)
+    return caliper_dbh(edges, radius, min_rows=tp.caliper_min_rows, radius_range=tuple(tp.caliper_radius_range),
+                       width_sd_m=tp.caliper_width_sd_m, one_sided_spread=tp.caliper_one_sided_spread or None,
+                       one_sided_agree=tp.caliper_one_sided_agree, ellipse_prior=tp.caliper_ellipse_prior,
+                       side_min=tp.caliper_side_min)
+
+
+def tree_edges(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp) -> pd.DataFrame:
+    """:func:`silhouette_edges` (``EDGE_COLUMNS``) of ``stems`` in every placed scan's range
+    image in ``tables``."""
     radius = np.nan_to_num(stems["radius_m"].to_numpy(float), nan=0.0)
     reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m
     half = tp.caliper_half_height_m
@@ -317,11 +338,7 @@ def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd
                              beam_exit_m=tp.beam_exit_m, beam_divergence_rad=1e-3 * tp.beam_divergence_mrad,
                              edge_step_m=tp.caliper_edge_step_m)
         parts.append(e.assign(scan=sid))
-    edges = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=EDGE_COLUMNS)
-    return caliper_dbh(edges, radius, min_rows=tp.caliper_min_rows, radius_range=tuple(tp.caliper_radius_range),
-                       width_sd_m=tp.caliper_width_sd_m, one_sided_spread=tp.caliper_one_sided_spread or None,
-                       one_sided_agree=tp.caliper_one_sided_agree, ellipse_prior=tp.caliper_ellipse_prior,
-                       side_min=tp.caliper_side_min)
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=EDGE_COLUMNS)
 
 
 def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, noise_ref_m: float) -> tuple[pd.DataFrame, float]:
@@ -347,14 +364,19 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
              breast_height_m: float = 1.3) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The trees' DBH from the merged slices (:func:`~.stem_slices.merged_slice_dbh`, same
     arguments), blended with the silhouettes' widths when ``tp.calipers`` and the scans' range
-    images ``images`` (``EDGE_COLUMNS_NEEDED``) are given. The fits gain ``caliper_dbh_m,
-    caliper_sd_m, caliper_scans``; a blended tree's ``dbh_note`` says so."""
+    images ``images`` (``EDGE_COLUMNS_NEEDED``) are given, then with one outline fitted to the
+    slice and the silhouette sides together (:mod:`.stem_outline`, ``tp.outline_ref_sd_m``).
+    The fits gain ``caliper_dbh_m, caliper_sd_m, caliper_scans`` (and ``outline_dbh_m,
+    outline_sd_m``); a blended tree's ``dbh_note`` says so."""
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
-    out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems)
+    gathered = slice_points(clouds, poses, stems, tp)
+    out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems,
+                                 gathered=gathered)
     fits["caliper_dbh_m"], fits["caliper_sd_m"], fits["caliper_scans"] = np.nan, np.nan, 0
     if not (tp.calipers and images):
         return out, fits
-    calipers = tree_calipers(images, poses, stems, tp)
+    edges = tree_edges(images, poses, stems, tp)
+    calipers = tree_calipers(images, poses, stems, tp, edges=edges)
     noise = float(np.nanmedian(fits["sigma_m"])) if fits["sigma_m"].notna().any() else float("nan")
     # the calipers' own error: their trees' median sd (the pixels' size: the scanner's step and
     # the ranges), times caliper_sd_factor
@@ -370,4 +392,7 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
                 part = f"{weight:.0%} from the silhouette widths of {k} scan{'s' if k > 1 else ''}"
                 notes[i] = f"{notes[i]}; {part}" if notes[i] else part
         out["dbh_note"] = notes
+    if tp.outline_ref_sd_m > 0 and len(edges):
+        sides = side_table(edges, tp.caliper_min_rows)
+        out, fits = blend_outline(out, fits, outline_dbhs(stems, *gathered, sides, tp), tp.outline_ref_sd_m)
     return out, fits

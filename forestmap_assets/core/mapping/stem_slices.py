@@ -225,13 +225,18 @@ def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float,
               radius_prior_sd_m: float | None = None, edge_footprints: float = 1.5,
               beam_exit_m: float = 0.042, beam_divergence_rad: float = 0.003,
               radius_range: tuple[float, float] = (0.5, 1.6), iterations: int = 6,
-              loo_sigmas: float | None = None) -> SliceFit:
+              loo_sigmas: float | None = None, sides: tuple | None = None,
+              side_reject_m: float = 0.02) -> SliceFit:
     """DBH of one stem from its merged slice points ``xy`` (n, 2), seen from ``sensor_xy``
     (n, 2; None: no incidence test), starting from the axis ``centre`` and ``radius_m`` (the
     cylinders'); the method is in the module docstring. ``radius_range`` (shares of
-    ``radius_m``) bounds a plausible mean radius; outside it the slice gives no estimate."""
+    ``radius_m``) bounds a plausible mean radius; outside it the slice gives no estimate.
+    ``sides``: silhouette sides ``(phi, h, w)`` (outward normals, distances from ``centre``,
+    inverse variances; :mod:`.stem_outline`) fitted with the bins, less those farther than
+    ``side_reject_m`` from the outline after the first round."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     c = np.asarray(centre, np.float64).copy()
+    c_start = c.copy()
     n_bins = max(4, int(round(360.0 / bin_deg)))
     none = SliceFit(np.nan, c[0], c[1], len(xy), 0.0, np.nan)
     if len(xy) < min_points or not np.isfinite(radius_m) or radius_m <= 0:
@@ -277,18 +282,26 @@ def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float,
         if radius_prior_sd_m:  # the cylinders' radius as a prior of the mean radius
             lam[0], prior[0] = 1.0 / radius_prior_sd_m**2, radius_m / radius_prior_sd_m**2
         y = mean_d[filled]
+        n_binned = y.size
+        if sides is not None:  # a side's tangent is the outline's support: the same terms
+            A, W, y = _with_sides(A, W, y, sides, c - c_start, a0, theta, side_reject_m if it else None,
+                                  radius_range)
         while True:
             normal = A.T @ (A * W[:, None]) + np.diag(lam)
+            if np.linalg.cond(normal) > 1e12:  # too few bins and sides to place the outline
+                return _with(none, n_points=int(keep.sum()), coverage_deg=coverage, reason="outline undetermined")
             inv = np.linalg.inv(normal)
             a = inv @ (A.T @ (W * y) + prior)
             # a bin the others do not predict (a branch or a neighbour's bark on the side not
             # seen): its residual left out of the fit, in its own sd (leave-one-out)
             hat = np.clip(W * np.einsum("ij,jk,ik->i", A, inv, A), 0.0, 1.0 - 1e-9)
             t = np.abs(y - A @ a) * np.sqrt(W / (1.0 - hat))
+            t[n_binned:] = 0.0  # the sides are judged by side_reject_m
             worst = int(np.argmax(t))
             if not loo_sigmas or t[worst] <= loo_sigmas:
                 break
             A, W, y = (np.delete(v, worst, axis=0) for v in (A, W, y))
+            n_binned -= 1
             coverage -= 360.0 / n_bins
             if coverage < min_coverage_deg:
                 return _with(none, n_points=int(keep.sum()), coverage_deg=coverage, sigma_m=sigma,
@@ -308,6 +321,20 @@ def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float,
     bias = float(np.mean(range_sigma_m**2 * sin2 / (2.0 * a0)))
     return SliceFit(2.0 * (a0 - bias), float(c[0]), float(c[1]), int(keep.sum()), coverage, rms,
                     sd_m=2.0 * sd, sigma_m=sigma)
+
+
+def _with_sides(A, W, y, sides, moved, a0, theta, reject_m, radius_range):
+    """The bins' rows ``A, W, y`` with the sides' (``sides = (phi, h, w)``, ``h`` from the
+    start centre, so less ``moved`` along each normal), kept while within ``radius_range`` of
+    ``a0`` and, with ``reject_m``, that close to the current outline."""
+    phi, h, w = (np.asarray(v, np.float64) for v in sides)
+    h = h - (moved[0] * np.cos(phi) + moved[1] * np.sin(phi))
+    keep = (h >= radius_range[0] * a0) & (h <= radius_range[1] * a0)
+    if reject_m is not None:
+        keep &= np.abs(h - (a0 + theta[3] * np.cos(2 * phi) + theta[4] * np.sin(2 * phi))) <= reject_m
+    phi = phi[keep]
+    rows = np.column_stack([np.ones(phi.size), np.cos(phi), np.sin(phi), np.cos(2 * phi), np.sin(2 * phi)])
+    return np.vstack([A, rows]), np.concatenate([W, w[keep]]), np.concatenate([y, h[keep]])
 
 
 def _with(fit: SliceFit, **changes) -> SliceFit:
@@ -396,18 +423,25 @@ def slice_stems(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
                          "slope_x": slopes[:, 0], "slope_y": slopes[:, 1]})
 
 
+def slice_points(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame,
+                 tp) -> tuple[pd.DataFrame, np.ndarray]:
+    """:func:`gather_slices` with the tree parameters ``tp``' slice and gate."""
+    return gather_slices(clouds, poses, stems, half_height_m=tp.slice_half_height_m,
+                         gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
+
+
 def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
                      clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, tp,
-                     breast_height_m: float = 1.3,
-                     stems: pd.DataFrame | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+                     breast_height_m: float = 1.3, stems: pd.DataFrame | None = None,
+                     gathered: tuple[pd.DataFrame, np.ndarray] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The tree list of :func:`~forestmap_assets.core.mapping.trees.merge_trees` (``trees``,
     ``tree_of_cyl`` over the global cylinders ``cyl``) with DBH from the breast-height slices of
     the registered scans' levelled points ``clouds`` placed with ``poses``; ``tp`` is the tree
     parameter section (``params.TreeParams``). Returns the trees and the per-tree fits of
-    :func:`slice_dbhs`. ``stems``: the trees' :func:`slice_stems`, if the caller has them."""
+    :func:`slice_dbhs`. ``stems``: the trees' :func:`slice_stems`, ``gathered`` their
+    :func:`slice_points`, if the caller has them."""
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m) if stems is None else stems
-    slices, sensors = gather_slices(clouds, poses, stems, half_height_m=tp.slice_half_height_m,
-                                    gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
+    slices, sensors = slice_points(clouds, poses, stems, tp) if gathered is None else gathered
     return slice_dbhs(trees, slices, sensors, max_change=tp.slice_max_change,
                       max_incidence_deg=tp.slice_max_incidence_deg, bin_deg=tp.slice_bin_deg,
                       min_points=tp.slice_min_points, min_coverage_deg=tp.slice_min_coverage_deg,
