@@ -319,13 +319,13 @@ class TreeParams(_Stage):
     # a2, b2 with a prior sd of this share of w0 (5-15 % flattening; 0: the weighted mean)
     caliper_ellipse_prior: float = 0.04
     # one outline through the slice and the sides (stem_outline.py), blended with the DBH so far
-    # (its error, 0: not) by its own sd; a side's weight over its pixel's, rejected beyond
+    # (its error, 0: not) by its own sd; its points' band; a side's weight, rejected beyond
     outline_ref_sd_m: float = 0.010
+    outline_half_height_m: float = 0.3
     outline_side_weight: float = 4.0
     outline_side_reject_m: float = 0.02
     slice_bin_deg: float = 10.0  # angle bins of the outline fit
-    # a bin this far from the others' outline (leave-one-out, in its sd) is left out (0: none):
-    # stray points alone on the side no scan saw pull the centre
+    # a bin this far from the others' outline (leave-one-out, in its sd) is left out (0: none)
     slice_loo_sigmas: float = 3.5
     slice_min_points: int = 30
     # circumference with points, else the cylinders: an arc seen from one side (about 120 deg

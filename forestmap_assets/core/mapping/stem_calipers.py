@@ -51,6 +51,7 @@ from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_db
 from forestmap_assets.core.mapping.stem_slices import (
     MAX_SLOPE,
     StemCells,
+    gather_slices,
     merged_slice_dbh,
     slice_members,
     slice_points,
@@ -394,5 +395,8 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
         out["dbh_note"] = notes
     if tp.outline_ref_sd_m > 0 and len(edges):
         sides = side_table(edges, tp.caliper_min_rows)
+        if tp.outline_half_height_m != tp.slice_half_height_m:
+            gathered = gather_slices(clouds, poses, stems, half_height_m=tp.outline_half_height_m,
+                                     gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
         out, fits = blend_outline(out, fits, outline_dbhs(stems, *gathered, sides, tp), tp.outline_ref_sd_m)
     return out, fits

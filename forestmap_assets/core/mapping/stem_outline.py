@@ -14,7 +14,7 @@ its pixel's quantisation less what its several lines average out (``side_weight`
 ``caliper_width_sd_m``, and a side farther than ``side_reject_m`` from the outline after the first
 round (an occluder the edge test missed) is left out.
 
-The fit's own sd of the DBH (its normal equations') follows its errors on simulated realistic
+The fit's own sd of the DBH (its normal equations') roughly follows its errors on simulated realistic
 stems (0.4 cm where it is under 0.5 cm, 1.0 where it is 1.0-1.5, 2.0 where it is 1.5-3), so the
 tree's DBH so far (slice or cylinders, blended with the widths) takes it with the weight
 ``ref^2 / (ref^2 + sd^2)``, ``ref`` the error of that DBH (:func:`blend_outline`). Simulated plots:

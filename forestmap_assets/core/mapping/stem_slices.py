@@ -393,7 +393,7 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
     zbh = trees["z"].to_numpy(float) + breast_height_m
     if not len(zbh):
         return {}
-    half = tp.slice_half_height_m
+    half = max(tp.slice_half_height_m, tp.outline_half_height_m if tp.calipers else 0.0)  # stem_outline's band
     centre = trees[["x", "y"]].to_numpy(float)
     radius = np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
     reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m + MAX_SLOPE * half
