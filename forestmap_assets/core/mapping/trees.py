@@ -325,7 +325,10 @@ def merge_trees(
     was chosen. Own realistic-stem surveys 8 and 9: a 32 cm stem read 12 cm from one cylinder
     seen from 17 m, where three seen from 23-25 m read 34-35 cm, and a 47 cm stem read 28 cm
     from one 13 m away, where four higher up read 47-52 cm; DBH RMSE 3.53 / 3.25 -> 1.54 / 1.28
-    cm. One scan's cylinders and ``lone_agree`` 0.2 -> 0.3: a 44 cm stem read 12.8 cm from two
+    cm. Others of two or more scans that all read ``lone_ratio`` times its radius or more
+    give the DBH even where they differ among themselves (own realistic seed 49: a 45.5 cm stem
+    read 12.4 cm from one scan 17 m away, where two scans at 23 and 28 m read 33 and 50 cm).
+    One scan's cylinders and ``lone_agree`` 0.2 -> 0.3: a 44 cm stem read 12.8 cm from two
     cylinders of one scan 17 m away (the others 14-26 cm, 22-29 m), and a 25 cm stem 12.9 cm
     where the others read 22-28 cm; six full-resolution own realistic seeds 2.57 -> 1.33 cm
     (seed 16 5.44 -> 1.09), ten stored ones 1.19 -> 1.20, Sylva, rendered and own circular
@@ -404,6 +407,9 @@ def merge_trees(
                 r_o = _radius_at(sub[others], zb[others], max_taper_m_per_m, extrapolate=True)
                 med = _weighted_stat(r_o, dbh_weights[m][others], "median")
                 agree = np.abs(r_o - med) <= lone_agree * med
+                if (agree.sum() < 2 and "scan" in sub and np.unique(sub["scan"].to_numpy()[others]).size >= 2
+                        and (r_o >= lone_ratio * dbh / 2).all()):
+                    agree = np.ones(r_o.size, bool)  # every other scan's far thicker, though unlike
                 if agree.sum() >= 2 and med >= lone_ratio * dbh / 2:
                     lone = (f"DBH from {int(agree.sum())} cylinders within {dbh_extrapolate_m:g} m of "
                             f"breast height: the one nearest gave {100 * dbh:.1f} cm")
