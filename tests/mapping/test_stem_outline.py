@@ -6,6 +6,7 @@ import numpy as np
 import pandas as pd
 from test_stem_slices import outline, scan_section
 
+from forestmap_assets.core.mapping.stem_calipers import _side_weights
 from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_dbhs
 from forestmap_assets.core.mapping.stem_slices import slice_dbh
 from forestmap_assets.params import TreeParams
@@ -67,6 +68,7 @@ def test_outline_blend_weights_by_its_own_sd():
     sides = pd.DataFrame({"tree": 0, "scan": ["a", "b", "c"], "side": 1, "h": h, "size": 20,
                           "quantum": 0.004, "phi": phi})
     tp = TreeParams(beam_exit_m=0.0, beam_divergence_mrad=0.0)
+    sides = sides.assign(w=tp.outline_side_weight * _side_weights(sides, tp.caliper_width_sd_m))
     fitted = outline_dbhs(stems, slices, sensors, sides, tp)
     assert fitted["tree"].tolist() == [0]
     assert abs(fitted["outline_dbh_m"].iat[0] - 2 * R) < 0.006

@@ -51,11 +51,12 @@ from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_db
 from forestmap_assets.core.mapping.stem_slices import (
     MAX_SLOPE,
     StemCells,
-    gather_slices,
+    gather_half_height,
     merged_slice_dbh,
     slice_members,
     slice_points,
     slice_stems,
+    within_band,
 )
 
 if TYPE_CHECKING:
@@ -250,7 +251,8 @@ def _no_calipers() -> pd.DataFrame:
 
 def _side_weights(sides: pd.DataFrame, width_sd_m: float) -> np.ndarray:
     """A single side's inverse variance: its edge uniform within one pixel across
-    (``quantum``), plus half of ``width_sd_m``."""
+    (``quantum``), plus half of ``width_sd_m`` (:mod:`.stem_outline` scales it by
+    ``outline_side_weight``)."""
     return 1.0 / (sides["quantum"].to_numpy(float) ** 2 / 12.0 + (0.5 * width_sd_m) ** 2)
 
 
@@ -370,9 +372,10 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
     The fits gain ``caliper_dbh_m, caliper_sd_m, caliper_scans`` (and ``outline_dbh_m,
     outline_sd_m``); a blended tree's ``dbh_note`` says so."""
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
-    gathered = slice_points(clouds, poses, stems, tp)
+    with_outline = bool(tp.calipers and images and tp.outline_ref_sd_m > 0)
+    slices, sensors = slice_points(clouds, poses, stems, tp, gather_half_height(tp) if with_outline else None)
     out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems,
-                                 gathered=gathered)
+                                 gathered=(within_band(slices, stems, tp.slice_half_height_m), sensors))
     fits["caliper_dbh_m"], fits["caliper_sd_m"], fits["caliper_scans"] = np.nan, np.nan, 0
     if not (tp.calipers and images):
         return out, fits
@@ -393,10 +396,9 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
                 part = f"{weight:.0%} from the silhouette widths of {k} scan{'s' if k > 1 else ''}"
                 notes[i] = f"{notes[i]}; {part}" if notes[i] else part
         out["dbh_note"] = notes
-    if tp.outline_ref_sd_m > 0 and len(edges):
+    if with_outline and len(edges):
         sides = side_table(edges, tp.caliper_min_rows)
-        if tp.outline_half_height_m != tp.slice_half_height_m:
-            gathered = gather_slices(clouds, poses, stems, half_height_m=tp.outline_half_height_m,
-                                     gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
-        out, fits = blend_outline(out, fits, outline_dbhs(stems, *gathered, sides, tp), tp.outline_ref_sd_m)
+        sides = sides.assign(w=tp.outline_side_weight * _side_weights(sides, tp.caliper_width_sd_m))
+        outline = outline_dbhs(stems, within_band(slices, stems, tp.outline_half_height_m), sensors, sides, tp)
+        out, fits = blend_outline(out, fits, outline, tp.outline_ref_sd_m)
     return out, fits

@@ -10,8 +10,8 @@ stem from one side only, the front arc fixes the centre across each line of sigh
 symmetry) and a single tangent then fixes the radius, which neither gives alone (the arc's
 curvature is 15-25 % off the mean radius; a lone side's distance moves with the axis, which the
 partial arcs pulled towards the scanners). No coverage is asked of the slice; a side's weight is
-its pixel's quantisation less what its several lines average out (``side_weight``), plus half of
-``caliper_width_sd_m``, and a side farther than ``side_reject_m`` from the outline after the first
+its pixel's quantisation less what its several lines average out (``outline_side_weight``), plus half of
+``caliper_width_sd_m``, and a side farther than ``outline_side_reject_m`` from the outline after the first
 round (an occluder the edge test missed) is left out.
 
 The fit's own sd of the DBH (its normal equations') roughly follows its errors on simulated realistic
@@ -36,12 +36,10 @@ def outline_dbhs(stems: pd.DataFrame, slices: pd.DataFrame, sensors: np.ndarray,
     """The joint outline DBH (``OUTLINE_COLUMNS``, ``tree`` the row of ``stems``) of each stem
     with sides: ``stems`` of :func:`~.stem_slices.slice_stems`, its slice points ``slices`` and
     ``sensors`` (:func:`~.stem_slices.gather_slices`), ``sides`` of
-    :func:`~.stem_calipers.side_table`; ``tp`` the tree parameters."""
+    :func:`~.stem_calipers.side_table` with their weights ``w``; ``tp`` the tree parameters."""
     rows = []
     if sides.empty or not len(stems):
         return pd.DataFrame({c: pd.Series(dtype="float64") for c in OUTLINE_COLUMNS})
-    w = tp.outline_side_weight / (sides["quantum"].to_numpy(float) ** 2 / 12.0 + (0.5 * tp.caliper_width_sd_m) ** 2)
-    sides = sides.assign(w=w)
     order = np.argsort(slices["tree"].to_numpy(), kind="stable")
     s = slices.iloc[order]
     bounds = np.searchsorted(s["tree"].to_numpy(), np.arange(len(stems) + 1))

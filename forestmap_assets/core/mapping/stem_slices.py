@@ -393,7 +393,7 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
     zbh = trees["z"].to_numpy(float) + breast_height_m
     if not len(zbh):
         return {}
-    half = max(tp.slice_half_height_m, tp.outline_half_height_m if tp.calipers else 0.0)  # stem_outline's band
+    half = gather_half_height(tp)
     centre = trees[["x", "y"]].to_numpy(float)
     radius = np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
     reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m + MAX_SLOPE * half
@@ -423,11 +423,28 @@ def slice_stems(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
                          "slope_x": slopes[:, 0], "slope_y": slopes[:, 1]})
 
 
-def slice_points(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame,
-                 tp) -> tuple[pd.DataFrame, np.ndarray]:
-    """:func:`gather_slices` with the tree parameters ``tp``' slice and gate."""
-    return gather_slices(clouds, poses, stems, half_height_m=tp.slice_half_height_m,
+def gather_half_height(tp) -> float:
+    """Half the height band the tree list gathers: the slice's, or :mod:`.stem_outline`'s where
+    the silhouettes run and it is wider."""
+    outline = tp.outline_half_height_m if tp.calipers and tp.outline_ref_sd_m > 0 else 0.0
+    return max(tp.slice_half_height_m, outline)
+
+
+def slice_points(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame, tp,
+                 half_height_m: float | None = None) -> tuple[pd.DataFrame, np.ndarray]:
+    """:func:`gather_slices` with the tree parameters ``tp``' gate, within ``half_height_m``
+    (default the slice's) of breast height."""
+    half = tp.slice_half_height_m if half_height_m is None else half_height_m
+    return gather_slices(clouds, poses, stems, half_height_m=half,
                          gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
+
+
+def within_band(slices: pd.DataFrame, stems: pd.DataFrame, half_height_m: float) -> pd.DataFrame:
+    """The points of :func:`gather_slices`' ``slices`` within ``half_height_m`` of their stem's
+    breast height: the same points a gather with that band keeps (its reach and nearest stem do
+    not depend on the band), so one gather serves two bands."""
+    dz = slices["z"].to_numpy(float) - stems["zbh"].to_numpy(float)[slices["tree"].to_numpy(int)]
+    return slices[np.abs(dz) <= half_height_m]
 
 
 def merged_slice_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
