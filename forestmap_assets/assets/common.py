@@ -41,7 +41,7 @@ CODE_VERSIONS: dict[str, str] = {
     "optimal_map": "4",
     "residual_checks": "1",
     "integrated_map": "2",
-    "tree_list": "11",
+    "tree_list": "12",
 }
 
 # Which parameter sections each stage reads (their hash enters the code version).

@@ -9,7 +9,9 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.core.geometry import compose, relative_pose, transform_points, wrap_deg
+from forestmap_assets.core.mapping.stem_slices import axis_slopes
 from forestmap_assets.core.mapping.trees import (
+    absorb_nested,
     beam_options,
     cylinders_to_global,
     ground_under,
@@ -22,6 +24,27 @@ def _cyl(cid, base, lean, r0, r1, z0, z1, n=10):
     p1 = np.array(base) + np.array([*lean, 0]) * z1 + [0, 0, z1]
     return dict(cylinder_id=cid, x0=p0[0], y0=p0[1], z0=p0[2], x1=p1[0], y1=p1[1], z1=p1[2],
                 radius_m=(r0 + r1) / 2, r0_m=r0, r1_m=r1, n_circles=n, length_m=z1 - z0)
+
+
+def test_a_tree_inside_another_stem_leaves_the_list():
+    # a 30 cm stem of 20 cylinders, a one-cylinder 15 cm "tree" 8 cm from its axis (a fork's
+    # limb continued down, a stub), two stems that touch (12 + 10 cm apart: both stay) and a
+    # crown part without a DBH 5 cm from the second
+    cyl = pd.DataFrame([_cyl(i, (0, 0, 0), (0.02, 0.0), 0.15, 0.15, 0.3 * i, 0.3 * i + 0.3) for i in range(4)]
+                       + [_cyl(4, (0.08, 0, 0), (0.3, 0.0), 0.075, 0.075, 2.0, 2.9),
+                          _cyl(5, (3, 0, 0), (0, 0), 0.12, 0.12, 0.5, 2.5), _cyl(6, (3.22, 0, 0), (0, 0), 0.1, 0.1, 0.5, 2.5),
+                          _cyl(7, (3.05, 0, 0), (0, 0), 0.1, 0.1, 8.0, 9.0)])
+    trees = pd.DataFrame({"tree_id": [1, 2, 3, 4, 5], "x": [0.0, 0.08, 3.0, 3.22, 3.05], "y": 0.0, "z": 0.0,
+                          "dbh_m": [0.30, 0.15, 0.24, 0.20, np.nan], "n_scans": [5, 1, 3, 3, 1],
+                          "n_cylinders": [20, 1, 6, 6, 1], "visible_length_m": 1.0, "dbh_note": ""})
+    tree_of = np.array([1, 1, 1, 1, 2, 3, 4, 5])
+    out, tree_of = absorb_nested(trees, tree_of)
+    assert out["x"].tolist() == [0.0, 3.0, 3.22] and out["tree_id"].tolist() == [1, 2, 3]
+    assert tree_of.tolist() == [1, 1, 1, 1, 0, 2, 3, 0]
+    # the absorbed limb's lean (0.3) no longer tilts the stem's axis; its cylinder has no tree
+    np.testing.assert_allclose(axis_slopes(cyl, tree_of, len(out)), [[0.02, 0.0], [0.0, 0.0], [0.0, 0.0]], atol=1e-12)
+    kept, same = absorb_nested(trees.iloc[2:4].reset_index(drop=True), np.array([1, 2]))
+    assert len(kept) == 2 and same.tolist() == [1, 2]
 
 
 def test_pose_helpers_round_trip():

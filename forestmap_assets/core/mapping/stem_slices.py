@@ -75,9 +75,9 @@ MAX_SLOPE = 0.3  # lean (dx/dz) of a stem's axis at most
 
 def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
                 z_max: np.ndarray | None = None, max_slope: float = MAX_SLOPE) -> np.ndarray:
-    """Lean (dx/dz, dy/dz) of each tree (1-based ``tree_of_cyl``), the ``n_circles``-weighted
-    mean of its cylinders' axes (only those starting below ``z_max`` of their tree when given),
-    clipped to ``max_slope``; zero for a tree without such a cylinder."""
+    """Lean (dx/dz, dy/dz) of each tree (1-based ``tree_of_cyl``, 0: no tree), the
+    ``n_circles``-weighted mean of its cylinders' axes (only those starting below ``z_max`` of
+    their tree when given), clipped to ``max_slope``; zero for a tree without such a cylinder."""
     out = np.zeros((n_trees, 2))
     if len(cyl) == 0 or n_trees == 0:
         return out
@@ -87,6 +87,8 @@ def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
     ok = np.abs(dz) > 0.05
     slope = np.where(ok[:, None], (p1[:, :2] - p0[:, :2]) / np.where(ok, dz, 1.0)[:, None], 0.0)
     k = np.asarray(tree_of_cyl, dtype=int) - 1
+    ok &= k >= 0
+    k = np.maximum(k, 0)
     if z_max is not None:
         ok &= np.minimum(p0[:, 2], p1[:, 2]) < np.asarray(z_max, float)[k]
     w = np.where(ok, cyl["n_circles"].to_numpy(float), 0.0)
