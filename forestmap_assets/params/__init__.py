@@ -316,11 +316,11 @@ class TreeParams(_Stage):
     caliper_one_sided_agree: float = 0.25
     caliper_side_min: int = 2  # (0: not) give twice their mean distance from the axis
     # widths of several directions fit w0 + a2 cos 2a + b2 sin 2a (stem_calipers.width_function),
-    # a2, b2 with a prior sd of this share of w0 (5-15 % flattening; 0: the weighted mean)
-    caliper_ellipse_prior: float = 0.04
-    # one outline through the slice and the sides (stem_outline.py), blended with the DBH so far
-    # (its error, 0: not) by its own sd; its points' band; a side's weight, rejected beyond
+    caliper_ellipse_prior: float = 0.04  # a2, b2 prior sd, share of w0 (0: the weighted mean)
+    # one outline through the slice and the sides (stem_outline.py), blended with the DBH so far by its
+    # sd (ref: that DBH's error, 0: not; the cylinders' where no width); points' band; side weight, reject
     outline_ref_sd_m: float = 0.010
+    outline_ref_cylinders_sd_m: float = 0.03
     outline_half_height_m: float = 0.3
     outline_side_weight: float = 4.0
     outline_side_reject_m: float = 0.02

@@ -82,3 +82,7 @@ def test_outline_blend_weights_by_its_own_sd():
     assert "from one outline" in out["dbh_note"].iat[0]
     assert out["dbh_m"].iat[1] == 0.20 and out["dbh_note"].iat[1] == ""
     assert np.isnan(fits["outline_dbh_m"].iat[1])
+    # a DBH so far from the cylinders alone (no width) is far less sure: the outline weighs more
+    cyl_only, _ = blend_outline(trees, fits, fitted, np.array([tp.outline_ref_cylinders_sd_m]))
+    w_cyl = tp.outline_ref_cylinders_sd_m**2 / (tp.outline_ref_cylinders_sd_m**2 + sd**2)
+    assert w_cyl > w and np.isclose(cyl_only["dbh_m"].iat[0], (1 - w_cyl) * 0.30 + w_cyl * fitted["outline_dbh_m"].iat[0])

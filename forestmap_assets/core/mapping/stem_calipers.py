@@ -400,5 +400,8 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
         sides = side_table(edges, tp.caliper_min_rows)
         sides = sides.assign(w=tp.outline_side_weight * _side_weights(sides, tp.caliper_width_sd_m))
         outline = outline_dbhs(stems, within_band(slices, stems, tp.outline_half_height_m), sensors, sides, tp)
-        out, fits = blend_outline(out, fits, outline, tp.outline_ref_sd_m)
+        # the DBH so far: the widths' (blended), else the cylinders' alone with their own error
+        widths = np.isin(outline["tree"].to_numpy(int), calipers["tree"].to_numpy(int)) & (weight > 0)
+        ref = np.where(widths, tp.outline_ref_sd_m, tp.outline_ref_cylinders_sd_m)
+        out, fits = blend_outline(out, fits, outline, ref)
     return out, fits

@@ -70,9 +70,10 @@ def _slice_options(tp) -> dict:
 
 
 def blend_outline(trees: pd.DataFrame, fits: pd.DataFrame, outline: pd.DataFrame,
-                  ref_sd_m: float) -> tuple[pd.DataFrame, pd.DataFrame]:
+                  ref_sd_m) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``trees`` with ``dbh_m = (1 - w) dbh_m + w outline``, ``w = ref^2 / (ref^2 + sd^2)``, where
-    a tree has a DBH and a joint outline (``ref_sd_m`` the error of the DBH so far); ``fits``
+    a tree has a DBH and a joint outline (``ref_sd_m`` the error of the DBH so far, one value or
+    one per row of ``outline``); ``fits``
     gains ``outline_dbh_m, outline_sd_m`` and a blended tree's ``dbh_note`` says how much."""
     out, fits = trees.copy(), fits.copy()
     fits["outline_dbh_m"], fits["outline_sd_m"] = np.nan, np.nan
