@@ -19,3 +19,19 @@ def test_fingerprint_follows_the_cache_folder(monkeypatch):
     here = warm_kernels.fingerprint()
     monkeypatch.setenv("NUMBA_CACHE_DIR", "/elsewhere")
     assert warm_kernels.fingerprint() != here
+
+
+def test_the_full_turn_cloud_takes_the_paths_a_big_scan_takes(tmp_path):
+    """The warm-up's LAZ cloud must reach the kernels a 2 M-point full-turn scan reaches: over
+    200 k points (the step estimate's window subset) and no empty 0.01 deg of azimuth (the dense
+    full circle's seam search)."""
+    import laspy
+    import numpy as np
+
+    from forestmap_assets.io._projection_kernels import azimuth_bins
+
+    camp = warm_kernels.full_turn_campaign(tmp_path)
+    las = laspy.read(str(camp / "A.laz"))
+    az = np.degrees(np.arctan2(np.asarray(las.y), np.asarray(las.x)))
+    assert az.size > 200_000
+    assert (azimuth_bins(az, 1, 36_000, 0.01) > 0).all()
