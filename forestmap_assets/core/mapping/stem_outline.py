@@ -9,15 +9,16 @@ least squares takes both (:func:`~.stem_slices.slice_dbh` with ``sides``): where
 stem from one side only, the front arc fixes the centre across each line of sight (its left-right
 symmetry) and a single tangent then fixes the radius, which neither gives alone (the arc's
 curvature is 15-25 % off the mean radius; a lone side's distance moves with the axis, which the
-partial arcs pulled towards the scanners). No coverage is asked of the slice; a side's weight is
-its pixel's quantisation less what its several lines average out (``outline_side_weight``), plus half of
-``caliper_width_sd_m``, and a side farther than ``outline_side_reject_m`` from the outline after the first
-round (an occluder the edge test missed) is left out.
+partial arcs pulled towards the scanners). No coverage is asked of the slice; a side's weight
+is its pixel's quantisation less what its several lines average out (``outline_side_weight``),
+plus half of ``caliper_width_sd_m``, and a side farther than ``outline_side_reject_m`` from the
+outline after the first round (an occluder the edge test missed) is left out.
 
-The fit's own sd of the DBH (its normal equations') roughly follows its errors on simulated realistic
-stems (0.4 cm where it is under 0.5 cm, 1.0 where it is 1.0-1.5, 2.0 where it is 1.5-3), so the
-tree's DBH so far (slice or cylinders, blended with the widths) takes it with the weight
-``ref^2 / (ref^2 + sd^2)``, ``ref`` the error of that DBH (:func:`blend_outline`). Simulated plots:
+The fit's own sd of the DBH (its normal equations') roughly follows its errors on simulated
+realistic stems (0.4 cm where it is under 0.5 cm, 1.0 where it is 1.0-1.5, 2.0 where it is
+1.5-3), so the tree's DBH so far takes it with the weight ``ref^2 / (ref^2 + sd^2)``, ``ref``
+the error of that DBH (:func:`blend_outline`): ``outline_ref_sd_m`` where the widths took part,
+``outline_ref_cylinders_sd_m`` where the cylinders alone gave it. Simulated plots:
 ``benchmarks/results.md``, section "outline".
 """
 
@@ -73,8 +74,8 @@ def blend_outline(trees: pd.DataFrame, fits: pd.DataFrame, outline: pd.DataFrame
                   ref_sd_m) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``trees`` with ``dbh_m = (1 - w) dbh_m + w outline``, ``w = ref^2 / (ref^2 + sd^2)``, where
     a tree has a DBH and a joint outline (``ref_sd_m`` the error of the DBH so far, one value or
-    one per row of ``outline``); ``fits``
-    gains ``outline_dbh_m, outline_sd_m`` and a blended tree's ``dbh_note`` says how much."""
+    one per row of ``outline``); ``fits`` gains ``outline_dbh_m, outline_sd_m`` and a blended
+    tree's ``dbh_note`` says how much."""
     out, fits = trees.copy(), fits.copy()
     fits["outline_dbh_m"], fits["outline_sd_m"] = np.nan, np.nan
     rows = outline["tree"].to_numpy(int)

@@ -453,10 +453,10 @@ def absorb_nested(trees: pd.DataFrame, tree_of_cyl: np.ndarray) -> tuple[pd.Data
     that the axis test did not merge (inferred, issue 19). Of two such trees the one with a
     DBH stays, then the one of more cylinders, then the thicker; the other leaves the list and
     its cylinders belong to no tree (``tree_of_cyl`` 0), as it would otherwise take half of the
-    stem's points at breast height (the nearest axis decides) and hide one silhouette side. Own realistic
-    full-resolution seed 19: a 29.4 cm stem and a one-cylinder 15.5 cm "tree" 8.7 cm from its
-    axis; every scan's far-side edge fell at the axis (benchmarks/results.md, "nested").
-    Trees are numbered again from 1."""
+    stem's points at breast height (the nearest axis decides) and hide one silhouette side.
+    Own realistic full-resolution seed 19: a 29.4 cm stem and a one-cylinder 15.5 cm "tree"
+    8.7 cm from its axis; every scan's far-side edge fell at the axis (benchmarks/results.md,
+    "nested"). Trees are numbered again from 1."""
     r = np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
     if len(trees) < 2 or r.max() <= 0:
         return trees, tree_of_cyl
