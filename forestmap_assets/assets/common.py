@@ -35,7 +35,7 @@ CODE_VERSIONS: dict[str, str] = {
     "submaps": "1",
     "refine_clouds": "2",
     "candidate_pairs": "2",
-    "pairwise_registrations": "3",
+    "pairwise_registrations": "4",
     "refined_registrations": "6",
     "retry_pairs": "1",
     "optimal_map": "4",

@@ -207,14 +207,13 @@ class RegistrationParams(_Stage):
     ground_tol_m: float = 0.15
     feature_z_sd_m: float = 0.15
     # (beyond the thesis, issue 19; core/registration/stem_polish.py) an accepted pose polished by
-    # least squares on its matched stem axes, its heading sigma from their scatter times
-    # polish_sd_scale; not used where it would move the pose by more than polish_max_sigmas of
-    # the branch-and-bound sigmas. Off here (the thesis' structured sites), on in the forest
-    # preset. 1.2: the polished links' heading error / sd over 9 surveys pooled 0.94 with 1.0, and
-    # the scans' heading error / sd RMS Sylva 1-5 / own 1-2 / rendered 1-2 1.02 / 1.36 / 1.04 with
-    # 1.0, 0.84 / 1.12 / 0.94 with 1.2 (benchmarks/results.md "stem_polish")
+    # least squares on its matched stem axes, its heading sigma from their scatter (clustered by
+    # stem) times polish_sd_scale; not used where it would move the pose by more than
+    # polish_max_sigmas of the branch-and-bound sigmas. Off here (the thesis' structured sites), on
+    # in the forest preset. 1.0: the links' heading error / sd Sylva 0.88, rendered 0.72, own
+    # 1.14 (plain scatter times 1.2: 0.57 / 0.46 / 0.89; benchmarks/results.md "polish_sd")
     stem_polish: bool = False
-    polish_sd_scale: float = 1.2
+    polish_sd_scale: float = 1.0
     polish_max_sigmas: float = 3.0
     # pairs with no prior: 'bnb' searches the no-prior box (full circle, plot-size xy); 'fourier'
     # centres the forest box on the Fourier coarse registration of the raw points (men spec 4);

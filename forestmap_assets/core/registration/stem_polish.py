@@ -13,16 +13,20 @@ segments' centroid ``c`` and a shift ``t`` are fitted by least squares,
 
     e_k = t + w (-(q_k - c)_y, (q_k - c)_x),
 
-re-paired and fitted again until the rotation is below 1e-7 rad; segments farther from the fit
-than ``trim_sigmas`` times their RMS residual are left out. The heading sigma is ``sd_scale``
-(1.2) times the fit's own (residual variance times the inverse normal matrix), which is what the
-stems' scatter allows. Measured on the branch-and-bound links of 9 surveys (Sylva 1-5, own
-simulator 1-2 at full resolution, rendered 1-2; benchmarks/results.md "stem_polish"): heading
-error RMS Sylva 0.005-0.013 -> 0.0015-0.006 deg, rendered 0.007 / 0.004 -> 0.002 / 0.001 deg,
-own 0.017 / 0.011 -> 0.009 / 0.015 deg; error / the fit's own sd 0.37-1.43 (pooled 0.94). The
-fitted shift is applied too, but the sub-maps' axes share biases that their scatter does not
-show (the same fit's x, y sigma was 1.4-5.4 times too small), so the x, y, z sigmas stay the
-branch and bound's.
+re-paired and fitted again until the rotation is below 1e-7 rad; segments farther from the fit than
+``trim_sigmas`` times their RMS residual are left out. The heading sigma is ``sd_scale`` (1.0)
+times the fit's stem-clustered jackknife sigma (CR3), ``(G - 1) / G N^-1 (sum_g A_g^T u_g u_g^T
+A_g) N^-1`` with ``u_g = (I - H_gg)^-1 r_g``, the segments grouped into G stems (within ``stem_m``
+of each other): the segments of one stem share its shape's bias, and the far segments, which weigh
+most on the heading, scatter unlike the near ones (issue 19). Fewer than 6 stems fall back to the
+larger of that and the fit's plain sigma (residual variance times ``N^-1``). Heading error / sd RMS
+over the links of Sylva 44-48 (58), rendered 16 (12) and own 1-6, 14-64 (661; benchmarks/results.md
+"polish_sd"): 0.57 / 0.46 / 0.89 with the plain sigma times 1.2, 0.82 / 0.68 / 1.03 with this one.
+The polish took the links' heading error RMS from 0.005-0.013 to 0.0015-0.006 deg on Sylva 1-5,
+0.007 / 0.004 to 0.002 / 0.001 deg on rendered 1-2 and 0.017 / 0.011 to 0.009 / 0.015 deg on own
+1-2 (benchmarks/results.md "stem_polish"). The fitted shift is applied too, but the sub-maps' axes
+share biases that their scatter does not show (the same fit's x, y sigma was 1.4-5.4 times too
+small), so the x, y, z sigmas stay the branch and bound's.
 
 The polish is not used (the pose stays) when fewer than ``min_segments`` segments pair, or when
 it would move the pose by more than ``max_sigmas`` of the branch-and-bound sigmas."""
@@ -33,6 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.geometry import rot_z, transform_points, wrap_deg
@@ -65,10 +71,32 @@ def _segment_residuals(moved: np.ndarray, ids: np.ndarray, tree: cKDTree, ref_xy
     return pos[keep], err[keep]
 
 
+def _clustered_cov(A: np.ndarray, r: np.ndarray, q: np.ndarray, stem_m: float,
+                   plain: np.ndarray) -> np.ndarray:
+    """The stem-clustered jackknife (CR3) covariance of the fit ``y = A sol`` (module
+    docstring): ``A`` (2n, 3), residuals ``r`` (n, 2), segment positions ``q`` (n, 2), ``plain``
+    the fit's homoscedastic covariance."""
+    n = len(q)
+    pairs = cKDTree(q).query_pairs(stem_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    n_stems, stem = connected_components(graph, directed=False)
+    inv = np.linalg.inv(A.T @ A)
+    rows = np.repeat(stem, 2)  # A's rows are x, y of each segment in turn
+    meat = np.zeros((3, 3))
+    for g in range(n_stems):
+        a_g = A[rows == g]
+        r_g = r[stem == g].reshape(-1)
+        lever = np.eye(len(a_g)) - a_g @ inv @ a_g.T  # I - H_gg: the stem left out of the fit
+        s_g = a_g.T @ np.linalg.lstsq(lever, r_g, rcond=None)[0]
+        meat += np.outer(s_g, s_g)
+    cov = (n_stems - 1) / n_stems * inv @ meat @ inv
+    return cov if n_stems >= 6 or cov[2, 2] >= plain[2, 2] else plain
+
+
 def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose, sd, *,
                 match_m: float = 0.105, min_points: int = 5, min_segments: int = 4,
-                trim_sigmas: float = 3.0, sd_scale: float = 1.2, max_sigmas: float = 3.0,
-                iterations: int = 5) -> Polish:
+                trim_sigmas: float = 3.0, sd_scale: float = 1.0, max_sigmas: float = 3.0,
+                stem_m: float = 0.5, iterations: int = 5) -> Polish:
     """Polish ``pose`` (dx, dy, dz, dheading_deg of the scan in the reference's frame) on the
     two sub-maps' cylinder points (module docstring); ``sd`` are its branch-and-bound sigmas."""
     pose = np.asarray(pose, dtype=np.float64).copy()
@@ -85,7 +113,7 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
     ids = a["feature_id"].to_numpy() if "feature_id" in a else np.zeros(len(a), np.int64)
     ref = b[["x", "y", "z"]].to_numpy(np.float64)
     tree = cKDTree(ref)
-    n, cov = 0, None
+    n, cov, A, r, q_fit = 0, None, None, None, None
     for _ in range(iterations):
         q, e = _segment_residuals(transform_points(pts, pose), ids, tree, ref[:, :2], match_m, min_points)
         keep = np.ones(len(q), bool)
@@ -93,8 +121,9 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
             n = int(keep.sum())
             if n < min_segments:
                 return Polish(start, np.nan, n, f"only {n} stem segments pair")
-            c = q[keep].mean(axis=0)
-            v = q[keep] - c
+            q_fit = q[keep]
+            c = q_fit.mean(axis=0)
+            v = q_fit - c
             A = np.zeros((2 * n, 3))
             A[0::2, 0], A[1::2, 1] = 1.0, 1.0
             A[0::2, 2], A[1::2, 2] = -v[:, 1], v[:, 0]
@@ -113,6 +142,7 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
         pose[3] = pose[3] + np.degrees(w)
         if abs(w) < 1e-7 and np.all(np.abs(shift) < 1e-6):
             break
+    cov = _clustered_cov(A, r, q_fit, stem_m, cov)
     sd_h = sd_scale * float(np.degrees(np.sqrt(cov[2, 2])))
     moved = np.abs(np.r_[pose[:2] - start[:2], pose[3] - start[3]])
     limit = max_sigmas * np.r_[sd[0], sd[1], sd[3]]
