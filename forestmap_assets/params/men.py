@@ -66,12 +66,12 @@ class RefineSettings:
     # (x, y, z, heading; two_way.beam_sd)
     beam_exit_m: float = 0.0
     beam_divergence_mrad: float = 0.0
-    # x, y 0.09 -> 0.164 with two_way_sd_scale's x, y 0.8 -> 0.44: a wide beam's links keep
-    # their sigmas (its widened silhouettes bias them more than their Hessian shows); z 0.035
-    # -> 0.01: silhouettes widen sideways; the own simulator's scans (3 mrad beam) had z error /
-    # sd 0.13 / 0.41 (circular / realistic stems, 2 surveys each), 0.33 / 0.66 with this and
-    # mapping's refined_scan_correlation (benchmarks/results.md "scan_offsets")
-    beam_sd_share: tuple[float, float, float, float] = (0.164, 0.164, 0.01, 0.11)
+    # a wide beam's widened silhouettes bias the links more than their Hessian shows. x, y 0.164
+    # -> 0.08: the own simulator's scans (3 mrad beam) had x, y error / sd 0.49 / 0.51 (own
+    # realistic 14-54, 205 scans), 0.94 / 0.97 with 0.08 (circular 1-4: 0.62 / 0.38 -> 1.13 /
+    # 0.70; benchmarks/results.md "beam_share"); z 0.035 -> 0.01: silhouettes widen sideways
+    # (z error / sd 0.33 / 0.66 circular / realistic, results.md "scan_offsets")
+    beam_sd_share: tuple[float, float, float, float] = (0.08, 0.08, 0.01, 0.11)
     # two-way pairs' normal: the sum of both points' normals (point_to_plane.plane_pairs); None:
     # unless the beam diverges by more than symmetric_max_divergence_mrad (the silhouettes a wide
     # first-return beam widens face their own sensor, and the sum pulled the scans apart: +2-3 mm
