@@ -143,3 +143,15 @@ def radius_normals(points: np.ndarray, radius_m: float, origin=(0.0, 0.0, 0.0), 
         normal[counts < 3] = np.nan
         out[a:a + chunk] = normal
     return out
+
+
+def single_linkage(points: np.ndarray, radius_m: float) -> tuple[int, np.ndarray]:
+    """Connected components of points (n, k) closer than ``radius_m`` to one another (single
+    linkage): their number and each point's label."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(points)
+    pairs = cKDTree(points).query_pairs(radius_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)

@@ -210,8 +210,8 @@ class RegistrationParams(_Stage):
     # least squares on its matched stem axes, its heading sigma from their scatter (clustered by
     # stem) times polish_sd_scale; not used where it would move the pose by more than
     # polish_max_sigmas of the branch-and-bound sigmas. Off here (the thesis' structured sites), on
-    # in the forest preset. 1.0: the links' heading error / sd Sylva 0.88, rendered 0.72, own
-    # 1.14 (plain scatter times 1.2: 0.57 / 0.46 / 0.89; benchmarks/results.md "polish_sd")
+    # in the forest preset. 1.0: the links' heading error / sd Sylva 0.82, rendered 0.68, own
+    # 1.03 (plain scatter times 1.2: 0.57 / 0.46 / 0.89; benchmarks/results.md "polish_sd")
     stem_polish: bool = False
     polish_sd_scale: float = 1.0
     polish_max_sigmas: float = 3.0

@@ -33,7 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy.spatial import cKDTree
+
+from forestmap_assets.core.cloud import single_linkage
 
 STEM_COLUMNS = ("x", "y", "radius_m")
 
@@ -79,7 +80,7 @@ def stems_from_cylinders(cylinders: pd.DataFrame | None, *, z_m: float = 0.0, ba
     xy, radius, length, near = xy[ok], radius[ok], length[ok], near[ok]
     if len(xy) == 0:
         return np.zeros((0, 3))
-    label = _clusters(xy, merge_m)
+    label = single_linkage(xy, merge_m)[1]
     out = []
     for lab in np.unique(label):
         m = label == lab
@@ -98,20 +99,11 @@ def stems_from_submap(submap: pd.DataFrame | None, *, merge_m: float = 0.4) -> n
     if len(cyl) == 0:
         return np.zeros((0, 3))
     xy = cyl.groupby("feature_id")[["x", "y"]].mean().to_numpy(float)
-    label = _clusters(xy, merge_m)
+    label = single_linkage(xy, merge_m)[1]
     centres = np.array([xy[label == lab].mean(axis=0) for lab in np.unique(label)])
     return np.column_stack([centres, np.full(len(centres), np.nan)])
 
 
-def _clusters(xy: np.ndarray, radius_m: float) -> np.ndarray:
-    """Connected components of points closer than ``radius_m`` (single linkage)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n = len(xy)
-    pairs = cKDTree(xy).query_pairs(radius_m, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    return connected_components(graph, directed=False)[1]
 
 
 @dataclass(frozen=True)

@@ -37,10 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from forestmap_assets.core.cloud import single_linkage
 from forestmap_assets.core.geometry import rot_z, transform_points, wrap_deg
 
 
@@ -76,10 +75,7 @@ def _clustered_cov(A: np.ndarray, r: np.ndarray, q: np.ndarray, stem_m: float,
     """The stem-clustered jackknife (CR3) covariance of the fit ``y = A sol`` (module
     docstring): ``A`` (2n, 3), residuals ``r`` (n, 2), segment positions ``q`` (n, 2), ``plain``
     the fit's homoscedastic covariance."""
-    n = len(q)
-    pairs = cKDTree(q).query_pairs(stem_m, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    n_stems, stem = connected_components(graph, directed=False)
+    n_stems, stem = single_linkage(q, stem_m)
     inv = np.linalg.inv(A.T @ A)
     rows = np.repeat(stem, 2)  # A's rows are x, y of each segment in turn
     meat = np.zeros((3, 3))
@@ -113,7 +109,7 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
     ids = a["feature_id"].to_numpy() if "feature_id" in a else np.zeros(len(a), np.int64)
     ref = b[["x", "y", "z"]].to_numpy(np.float64)
     tree = cKDTree(ref)
-    n, cov, A, r, q_fit = 0, None, None, None, None
+    n, cov, A, r, q_fit = 0, None, None, None, None  # the last fit's
     for _ in range(iterations):
         q, e = _segment_residuals(transform_points(pts, pose), ids, tree, ref[:, :2], match_m, min_points)
         keep = np.ones(len(q), bool)
