@@ -204,7 +204,7 @@ def write_ply_xyz(path: Path, xyz) -> None:
     os.replace(tmp, path)
 
 
-def peer_simulate(out: Path, seed: int, scans: int) -> None:
+def peer_simulate(out: Path, seed: int, scans: int, levelled: bool = True) -> None:
     """Simulate a survey with Sylva, write scans/<id>.ply and sylva_truth.json (true
     ``world_from_scan`` transforms) and check that convention on the stems: each scan's stem
     points at 1.3 m, moved by its transform, must surround the true stem axis."""
@@ -214,7 +214,7 @@ def peer_simulate(out: Path, seed: int, scans: int) -> None:
     from sylva.coreg import simulate
 
     t0 = time.perf_counter()
-    survey = simulate.simulate_survey(n_scans=scans, seed=seed)
+    survey = simulate.simulate_survey(n_scans=scans, seed=seed, levelled=levelled)
     sim_s = time.perf_counter() - t0
     (out / "scans").mkdir(parents=True, exist_ok=True)
     names = [f"s{k + 1}" for k in range(len(survey.clouds))]
@@ -308,14 +308,16 @@ def peer_works(python: Path) -> str | None:
     return None
 
 
-def write_sylva_campaign(root: Path, truth: dict) -> None:
+def write_sylva_campaign(root: Path, truth: dict, tilted: bool = False) -> None:
     """campaign.yaml (one entry per scan, no prior, no sensor step: the clouds are not on a
-    scan grid) and truth/poses.csv: every scan in the (levelled) frame of the first."""
+    scan grid) and truth/poses.csv: every scan in the frame of the first (levelled; with
+    ``tilted``, Sylva's ``levelled=False`` scans, in the first scan's own tilted frame: x, y, z
+    and the heading of the relative transform, what ``poses.csv`` holds)."""
     import numpy as np
 
     T = [np.asarray(t, dtype=float) for t in truth["true_transforms"]]
     tilt = max(math.degrees(math.acos(min(1.0, t[2, 2]))) for t in T)
-    if tilt > 1e-6:
+    if tilt > 1e-6 and not tilted:
         raise SystemExit(f"Sylva's simulated scans are tilted ({tilt:.3g} deg): expected levelled")
     bad = [c for c in truth["stem_check_m"] if not c < 0.5]
     if bad:
@@ -352,15 +354,16 @@ def make_campaign(kind: str, seed: int, args, cache: Path, peer_py: Path | None)
     root.mkdir(parents=True)
     log = cache / f"{kind}-seed{seed}.simulate.log"
     print(f"  simulating {root} ...", flush=True)
-    if kind == "sylva":
+    if kind in ("sylva", "sylvatilt"):
+        tilted = ["--tilted"] if kind == "sylvatilt" else []
         m = run_measured([peer_py, Path(__file__).resolve(), "--peer", "simulate", "--seed", seed,
-                          "--scans", args.scans, "--out", root], log, echo=False)
+                          "--scans", args.scans, *tilted, "--out", root], log, echo=False)
         if m["rc"]:
             raise SystemExit(f"Sylva's simulator failed: {last_error(m['lines'])} (log {log})")
         truth = json.loads((root / "sylva_truth.json").read_text())
         (root / "truth").mkdir(exist_ok=True)
         os.replace(root / "sylva_truth.json", root / "truth" / "sylva_truth.json")
-        write_sylva_campaign(root, truth)
+        write_sylva_campaign(root, truth, tilted=kind == "sylvatilt")
         facts = {"points": truth["n_points"], "stem_check_m": truth["stem_check_m"],
                  "source": f"sylva-rs {truth['sylva_rs']}"}
     elif kind == "render":
@@ -508,6 +511,8 @@ def run_forestmap(case: dict, rundir: Path) -> dict:
     env = {k: v for k, v in os.environ.items()
            if k not in ("DAGSTER_HOME", "FORESTMAP_STORE", "FORESTMAP_CAMPAIGNS")}
     env["FORESTMAP_HOME"] = str(home)
+    # a fresh run as a user's first: no tilts estimated by an earlier run (levelling.yaml)
+    (Path(case["root"]) / "levelling.yaml").unlink(missing_ok=True)
     print(f"  forestmap run {case['root']} --no-cloud ...", flush=True)
     code = code_state()
     m = run_measured([forestmap_exe(), "run", case["root"], "--no-cloud", "--out", out], rundir / "forestmap.log", env)
@@ -659,7 +664,8 @@ def _ratio(a, b):
 
 
 def case_name(c: dict) -> str:
-    label = {"sylva": "Sylva sim", "render": "rendered", "ownreal": "own realistic"}.get(c["kind"], "own sim")
+    label = {"sylva": "Sylva sim", "sylvatilt": "Sylva unlevelled", "render": "rendered",
+             "ownreal": "own realistic"}.get(c["kind"], "own sim")
     return f"{label} {c['seed']}"
 
 
@@ -895,6 +901,9 @@ def main(argv=None) -> int:
     ap.add_argument("--render-seeds", default="1",
                     help="surveys rendered inside the registered cloud of an own realistic forest "
                          "(sim/cloud_render.py), same form (0: none)")
+    ap.add_argument("--tilted-seeds", default="0",
+                    help="Sylva surveys of unlevelled scans (simulate_survey(levelled=False): "
+                         "roll and pitch up to 0.5 deg, not given to forestmap), same form")
     ap.add_argument("--scans", type=int, default=6)
     ap.add_argument("--skip-peer", action="store_true", help="no Sylva: own simulator and forestmap only")
     ap.add_argument("--cache", type=Path, help="keep the simulated campaigns and runs here (reused)")
@@ -914,6 +923,7 @@ def main(argv=None) -> int:
         else:
             peer_py = args.peer_python
     plan = [("sylva", s) for s in (seeds_of(args.seeds) if peer_py else [])]
+    plan += [("sylvatilt", s) for s in (seeds_of(args.tilted_seeds) if peer_py and args.tilted_seeds != "0" else [])]
     plan += [("own", s) for s in (seeds_of(args.own_seeds) if args.own_seeds != "0" else [])]
     plan += [("ownreal", s) for s in (seeds_of(args.real_seeds) if args.real_seeds != "0" else [])]
     plan += [("render", s) for s in (seeds_of(args.render_seeds) if args.render_seeds != "0" else [])]
@@ -955,7 +965,7 @@ def main(argv=None) -> int:
         cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    sylva_v = next((c["source"] for c in cases if c["kind"] == "sylva"), "not run")
+    sylva_v = next((c["source"] for c in cases if c["kind"] in ("sylva", "sylvatilt")), "not run")
     intro = (f"{time.strftime('%Y-%m-%d')}, forestmap {commit}, Sylva: {sylva_v}, {os.cpu_count()} cores "
              f"({cpu}) shared with other work, {args.scans} scans per survey, no prior. Sylva surveys: "
              "`sylva.coreg.simulate.simulate_survey(n_scans, seed)` (40 m plot, 45 trees, scans within "
@@ -988,12 +998,13 @@ if __name__ == "__main__":
         pp.add_argument("--peer", choices=["simulate", "coregister"])
         pp.add_argument("--seed", type=int, default=1)
         pp.add_argument("--scans", type=int, default=6)
+        pp.add_argument("--tilted", action="store_true", help="simulate_survey(levelled=False)")
         pp.add_argument("--out", type=Path)
         pp.add_argument("--names", default="")
         pp.add_argument("clouds", nargs="*")
         a = pp.parse_args()
         if a.peer == "simulate":
-            peer_simulate(a.out, a.seed, a.scans)
+            peer_simulate(a.out, a.seed, a.scans, levelled=not a.tilted)
         else:
             peer_coregister(a.out, a.names.split(","), a.clouds)
         sys.exit(0)

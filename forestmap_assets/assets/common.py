@@ -40,6 +40,7 @@ CODE_VERSIONS: dict[str, str] = {
     "retry_pairs": "1",
     "optimal_map": "4",
     "residual_checks": "1",
+    "scan_tilts": "1",
     "integrated_map": "2",
     "tree_list": "12",
 }
@@ -60,6 +61,7 @@ STAGE_PARAMS: dict[str, tuple[str, ...]] = {
     "retry_pairs": ("registration",),
     "optimal_map": ("mapping",),
     "residual_checks": ("mapping",),
+    "scan_tilts": ("mapping",),
     "integrated_map": ("elevation",),
     "tree_list": ("trees",),
 }
@@ -80,6 +82,7 @@ PIPELINE: tuple[tuple[str, str], ...] = (
     ("retry_pairs", "campaign"),  # issue 17: partners for the scans the pairs left unplaced
     ("optimal_map", "campaign"),
     ("residual_checks", "campaign"),
+    ("scan_tilts", "campaign"),  # scans levelled from their shared stems (beyond the thesis)
     ("integrated_map", "campaign"),
     ("tree_list", "campaign"),
     ("occlusion_boundaries", "scan"),  # Men 2012 ch. 3, 6: where to scan next

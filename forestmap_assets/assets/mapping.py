@@ -1,6 +1,7 @@
 """Map assets (thesis ch. 6-7; spec 8-10): ``optimal_map`` (links admitted one at a time,
-Lu-Milios minimum-variance poses), ``residual_checks``, ``integrated_map`` (cylinders and
-elevation in the global frame) and ``tree_list``."""
+Lu-Milios minimum-variance poses), ``residual_checks``, ``scan_tilts`` (the scans' tilts from
+their shared stems), ``integrated_map`` (cylinders and elevation in the global frame) and
+``tree_list``."""
 
 from __future__ import annotations
 
@@ -162,6 +163,43 @@ def mapping_assets(campaign: Campaign) -> list:
             metadata={"not_registered": MetadataValue.json(unplaced)},
         )
 
+    mp = params.mapping
+
+    @asset(
+        key=key("scan_tilts"),
+        ins={"optimal_map": AssetIn(key=key("optimal_map")),
+             "cylinder_segments": all_scans(key("cylinder_segments"),
+                                           ["x0", "y0", "z0", "x1", "y1", "z1", "radius_m", "n_circles"])},
+        group_name="map",
+        code_version=code_version(campaign, "scan_tilts"),
+        description="Each scan's roll and pitch against the reference scan, from the lean of the "
+        "stems it shares with the scans registered to it (beyond the thesis, which levels scans by "
+        "their measured tilt; core/mapping/levelling.py): level is true where a scan is tilted by "
+        "mapping.levelling_min_tilt_deg and levelling_sigmas sd or more; forestmap run then writes "
+        "the estimates to the campaign's levelling.yaml and runs again with the scans levelled.",
+    )
+    @timed
+    def scan_tilts(context, optimal_map, cylinder_segments):
+        from forestmap_assets.core.mapping.levelling import link_tilt, needs_levelling, solve_tilts
+
+        links = optimal_map["links"]
+        cyl = cylinder_segments or {}
+        rows = []
+        for r in links.itertuples():
+            if r.scan in cyl and r.reference in cyl:
+                rows.append({"scan": r.scan, "reference": r.reference, "dheading_deg": r.dheading_deg,
+                             **link_tilt(cyl[r.scan], cyl[r.reference], (r.dx, r.dy, r.dz, r.dheading_deg))})
+        measured = pd.DataFrame(rows, columns=["scan", "reference", "dheading_deg", "tilt_x_deg", "tilt_y_deg",
+                                               "sd_tilt_deg", "n_tilt"])
+        tilts = solve_tilts(measured, campaign.scan_ids, reference)
+        tilted = needs_levelling(tilts, mp.levelling_min_tilt_deg, mp.levelling_sigmas) if mp.levelling else tilts.iloc[:0]
+        tilts["level"] = tilts["scan"].isin(tilted["scan"])
+        size = np.hypot(tilts["roll_deg"], tilts["pitch_deg"])
+        meta = {"largest_tilt_deg": round(float(size.max()), 4) if size.notna().any() else 0.0,
+                "to_level": MetadataValue.json(tilted["scan"].tolist()),
+                "tilts": md_table(tilts, ".4f"), "pairs": md_table(measured, ".4f")}
+        return Output(tilts, metadata=meta, data_version=data_version(tilts))
+
     @asset(
         key=key("integrated_map"),
         ins={
@@ -237,4 +275,4 @@ def mapping_assets(campaign: Campaign) -> list:
                 "dbh_histogram": png_metadata(dbh_histogram(trees, title=f"{campaign.name}: DBH of {len(dbh)} trees"))}
         return Output(trees, metadata=meta, data_version=data_version(trees))
 
-    return [optimal_map, residual_checks, integrated_map, tree_list]
+    return [optimal_map, residual_checks, scan_tilts, integrated_map, tree_list]

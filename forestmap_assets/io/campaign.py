@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from forestmap_assets.io.home import campaign_key, file_digest
+from forestmap_assets.io.levelling_file import read_levelling
 from forestmap_assets.io.scan_poses import PoseError, e57_poses, parse_pose
 from forestmap_assets.params import Params, ParamsError, resolve_params
 
@@ -49,6 +50,7 @@ class ScanEntry:
     e57_scan: int | None = None  # data3D index in a multi-scan E57
     pose: tuple[tuple[float, ...], ...] | None = None  # 4x4 scanner -> file frame (``pose:``)
     prior_source: str | None = None  # where ``a_priori`` came from: campaign.yaml, pose, e57 pose
+    levelled_from: tuple[float, float] | None = None  # the entry's own tilt, when levelling.yaml's replaced it
 
     @property
     def to_scanner(self):
@@ -229,6 +231,24 @@ def _drop_placeholder_poses(scans: list[ScanEntry]) -> list[ScanEntry]:
     return [replace(s, a_priori=None, prior_source=None) if s.id in drop else s for s in scans]
 
 
+def _with_levelling(root: Path, scans: list[ScanEntry]) -> list[ScanEntry]:
+    """The scans with the tilts of ``levelling.yaml`` (:mod:`.levelling_file`) where their entry
+    still gives the tilt the estimate was made from."""
+    from dataclasses import replace
+
+    try:
+        estimates, _ = read_levelling(root)
+    except ValueError as exc:
+        raise CampaignError(str(exc)) from None
+    out = []
+    for s in scans:
+        rec = estimates.get(s.id)
+        if rec is not None and max(abs(a - b) for a, b in zip(rec["from_tilt_deg"], s.tilt_deg, strict=True)) < 1e-9:
+            s = replace(s, tilt_deg=rec["tilt_deg"], levelled_from=s.tilt_deg)
+        out.append(s)
+    return out
+
+
 def load_campaign(folder: str | Path) -> Campaign:
     """Read and validate ``folder/campaign.yaml``; raise :class:`CampaignError` on any problem."""
     root = Path(folder).expanduser().resolve()
@@ -287,7 +307,7 @@ def load_campaign(folder: str | Path) -> Campaign:
             raise _fail(where, f"{at}.path: file not found: {rel}")
         scans.append(_scan_entry(raw, sid, path, where, at, from_file, e57_cache))
 
-    scans = _drop_placeholder_poses(scans)
+    scans = _with_levelling(root, _drop_placeholder_poses(scans))
 
     pairs: list[PairEntry] = []
     raw_pairs = doc.get("pairs") or []

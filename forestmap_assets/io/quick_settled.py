@@ -4,7 +4,7 @@ building the definitions and opening the instance take about 3 s on their own).
 When a ``forestmap run`` ends with every stage fresh (the session recorded the campaign as
 settled) and its outputs current, the command line records a *quick key* beside the settled
 record: a hash of what the run's result depends on, read without Dagster: ``campaign.yaml``
-(its bytes), each scan file's size and modification time, the package's sources, the Dagster
+(its bytes) and ``levelling.yaml``'s, each scan file's size and modification time, the package's sources, the Dagster
 instance's history (newest event, dynamic partitions, runs, read from its SQLite files), the
 outputs folder's files, the store and home variables and the run's export options. The next
 run computes the same key before importing anything heavy; equal means that nothing the full
@@ -20,6 +20,7 @@ import os
 from pathlib import Path
 
 from forestmap_assets.io.home import campaign_key, dagster_home
+from forestmap_assets.io.levelling_file import LEVELLING_FILE
 
 PACKAGE = Path(__file__).resolve().parents[1]
 # the home and store variables; the Dagster folder enters as the path they give (a run sets
@@ -78,6 +79,8 @@ def quick_key(root: Path, out: Path, options: tuple) -> tuple[str, str, dict] | 
     h = hashlib.sha256(repr((str(root.resolve()), str(out.resolve()), options,
                              [os.environ.get(k) for k in ENV], str(home))).encode())
     h.update(text)
+    levelling = root / LEVELLING_FILE  # the scans' estimated tilts (io/levelling_file.py)
+    h.update(levelling.read_bytes() if levelling.is_file() else b"no levelling")
     for part in (files, history, _stats(PACKAGE, "*.py"), _stats(home / "settled", "*.txt"), _stats(out)):
         h.update(repr(part).encode())
     key = campaign_key(str(doc.get("name", root.name)))

@@ -33,6 +33,7 @@ from forestmap_assets.orchestration.instance import (
     settled_key,
     sync_partitions,
 )
+from forestmap_assets.orchestration.levelling import level_campaign, tilts_to_level
 from forestmap_assets.orchestration.namespace import claim_campaign_name
 from forestmap_assets.orchestration.session import (  # noqa: F401  (re-exported)
     CAMPAIGN_TAG,
@@ -107,23 +108,26 @@ def run_campaign(
     if not share_namespace:
         claim_campaign_name(campaign, store_url, record=False)  # fail before any work
     defs = build_definitions([campaign], store_url, executor=executor)
+    full = stages is None
+
+    def ready(summary: RunSummary) -> None:  # not for a map whose scans are levelled next
+        if map_ready is not None and not (full and tilts_to_level(campaign, store_url) is not None):
+            map_ready(summary)
+
     # resolve definitions against this instance (not a stale one a caller left in the context)
     with set_defs_state_storage(instance.defs_state_storage):
-        return _run(
-            campaign,
-            defs,
-            instance,
-            executor,
-            store_url,
-            progress,
-            workers,
-            dask_address,
-            stages,
-            start,
-            share_namespace,
-            idle,
-            map_ready,
-        )
+        summary = _run(campaign, defs, instance, executor, store_url, progress, workers, dask_address,
+                       stages, start, share_namespace, idle, ready if map_ready is not None else None)
+        tilts = tilts_to_level(campaign, store_url) if full and not summary.failures else None
+        if tilts is None:
+            return summary
+        progress(level_campaign(campaign, tilts))  # the scans tilted: levelled, and again
+        campaign = load_campaign(folder)
+        defs = build_definitions([campaign], store_url, executor=executor)
+        again = _run(campaign, defs, instance, executor, store_url, progress, workers, dask_address,
+                     stages, start, share_namespace, None, map_ready)
+        again.ran[:0] = summary.ran
+        return again
 
 
 def _run(

@@ -263,20 +263,20 @@ class MappingParams(_Stage):
     max_iterations: int = 50
     check_new_link: bool = True
     chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
-    # the refinement objectives' difference per metre of baseline: a scale of the network when
-    # its mean is this many standard errors from 0 (core/mapping/objective_scale)
+    # network scale when the objectives' difference per metre is this many se (objective_scale)
     objective_scale_t: float = 3.0
-    # a scale about the reference that no link shows, as a sigma only (per metre; the larger of
-    # this and the objectives' scale, core/mapping/objective_scale.scale_sd)
+    # a scale no link shows, as a sigma only (per metre; objective_scale.scale_sd)
     scale_sd_floor: float = 0.0
-    # the poses' sigmas times the a posteriori variance factor's root where it exceeds 1, with
-    # this many redundant links or more (core/mapping/residuals.variance_factors; 0: never)
+    # sigmas x the root of the variance factor above 1, from this many redundant links (0: never)
     variance_factor_min_dof: int = 0
-    # correlation of two observations sharing a scan (x, y, z, heading), for the pose sigmas
-    # only (core/optimal_map.shared_scan_covariance; beyond the thesis; 0 = the thesis):
-    # branch-and-bound links, and links whose pose the refinement stage replaced
+    # correlation (x, y, z, heading) of links sharing a scan, pose sigmas only (0: the thesis;
+    # optimal_map.shared_scan_covariance): branch-and-bound links, refined links
     scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     refined_scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    # scans levelled from shared stems (core/mapping/levelling) at a tilt this large and this many sd
+    levelling: bool = True
+    levelling_min_tilt_deg: float = 0.3
+    levelling_sigmas: float = 5.0
 
 
 class TreeParams(_Stage):

@@ -1,0 +1,66 @@
+"""Scans whose campaign gives no tilt are levelled from their shared stems (beyond the thesis:
+core/mapping/levelling.py, orchestration/levelling.py) and the run goes again with them."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+import yaml
+
+from forestmap_assets.io.levelling_file import read_levelling
+from forestmap_assets.orchestration.runner import run_campaign
+from forestmap_assets.sim import simulate_campaign
+from forestmap_assets.sim.evaluate import pose_errors
+
+TILTS = [(0.0, 0.0), (0.6, -0.3), (-0.2, 0.55)]
+
+
+@pytest.mark.slow
+def test_tilted_scans_without_tilt_are_levelled_and_placed(tmp_path, monkeypatch):
+    monkeypatch.setenv("FORESTMAP_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("DAGSTER_HOME", str(tmp_path / "home" / "dagster"))
+    root = simulate_campaign(tmp_path / "plot", scans=3, trees=30, plot_size=30.0, seed=7, resolution="half",
+                             tilt_deg=TILTS)
+    doc = yaml.safe_load((root / "campaign.yaml").read_text())
+    for scan in doc["scans"]:
+        scan.pop("tilt_deg", None)  # the files are tilted, the campaign does not say so
+    (root / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    lines = []
+    summary = run_campaign(root, progress=lines.append)
+    assert summary.failures == []
+    assert any("levelled by levelling.yaml" in line for line in lines), lines
+    estimates, rounds = read_levelling(root)
+    ids = [s["id"] for s in doc["scans"]]
+    assert rounds == 1 and set(estimates) == set(ids[1:])
+    for sid, truth in zip(ids[1:], TILTS[1:], strict=True):
+        assert estimates[sid]["tilt_deg"] == pytest.approx(truth, abs=0.1), (sid, estimates[sid])
+        assert estimates[sid]["from_tilt_deg"] == (0.0, 0.0)
+    from forestmap_assets.access import load_asset
+
+    poses = load_asset("optimal_map", campaign=root)["poses"]
+    err = pose_errors(poses, pd.read_csv(root / "truth" / "poses.csv"))
+    assert err["exy"].max() < 0.01 and err["ez"].abs().max() < 0.01, err
+    # the next run finds everything levelled and fresh
+    assert run_campaign(root, progress=lambda m: None).ran == []
+
+
+@pytest.mark.slow
+def test_without_levelling_the_same_scans_are_off(tmp_path, monkeypatch):
+    """The case above with ``mapping.levelling: false``: the tilts stay in, and the poses are
+    centimetres off (what the levelling is for)."""
+    monkeypatch.setenv("FORESTMAP_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("DAGSTER_HOME", str(tmp_path / "home" / "dagster"))
+    root = simulate_campaign(tmp_path / "plot", scans=3, trees=30, plot_size=30.0, seed=7, resolution="half",
+                             tilt_deg=TILTS)
+    doc = yaml.safe_load((root / "campaign.yaml").read_text())
+    for scan in doc["scans"]:
+        scan.pop("tilt_deg", None)
+    doc["params"] = {"mapping": {"levelling": False}}
+    (root / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    assert run_campaign(root, progress=lambda m: None).failures == []
+    assert not (root / "levelling.yaml").exists()
+    from forestmap_assets.access import load_asset
+
+    poses = load_asset("optimal_map", campaign=root)["poses"]
+    err = pose_errors(poses, pd.read_csv(root / "truth" / "poses.csv"))
+    assert err["ez"].abs().max() > 0.02, err
