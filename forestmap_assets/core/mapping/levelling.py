@@ -38,7 +38,7 @@ def _axis_xy(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
 
 
 def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: float = 0.1,
-              min_overlap_m: float = 0.3, huber_m: float = 0.01, min_stems: int = 4) -> dict:
+              min_overlap_m: float = 0.3, huber_m: float = 0.01, min_stems: int = 8) -> dict:
     """Tilt of scan ``i`` against reference ``j`` in ``i``'s frame (module docstring):
     ``tilt_x_deg, tilt_y_deg``, its sd ``sd_tilt_deg`` and the stems it came from ``n_tilt``
     (NaN and 0 with fewer than ``min_stems``). ``pose``: ``(dx, dy, dz, heading_deg)`` of ``i``
@@ -114,7 +114,7 @@ def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: f
 def solve_tilts(links: pd.DataFrame, scans: list[str], reference: str, *, sd_floor_deg: float = 0.005,
                 reject_sigmas: float = 4.0) -> pd.DataFrame:
     """Each scan's tilt against ``reference`` (``scan, roll_deg, pitch_deg, sd_deg, n_links``;
-    NaN for a scan no measured link reaches) from the pairs' tilts (``links``: ``scan,
+    NaN for a scan no measured link reaches; ``dof`` the network's redundant equations) from the pairs' tilts (``links``: ``scan,
     reference, dheading_deg`` and :data:`TILT_COLUMNS`), weighted least squares of the module
     docstring's equation with the sd floored at ``sd_floor_deg``; a link more than
     ``reject_sigmas`` sd from the solution is left out (the worst first) and the rest solved
@@ -128,6 +128,7 @@ def solve_tilts(links: pd.DataFrame, scans: list[str], reference: str, *, sd_flo
     x = np.zeros(2 * len(free))
     cov = np.full((2 * len(free), 2 * len(free)), np.nan)
     reached = np.zeros(len(free), bool)
+    dof = 0
     for _ in range(len(use) + 1):
         rows, rhs, wts, used = [], [], [], []
         for k, r in use[keep].iterrows():
@@ -157,9 +158,9 @@ def solve_tilts(links: pd.DataFrame, scans: list[str], reference: str, *, sd_flo
         cov = np.full((2 * len(free), 2 * len(free)), np.nan)
         cov[np.ix_(idx, idx)] = np.linalg.pinv(normal)
         res = np.hypot(*(a @ x - b).reshape(-1, 2).T) * np.sqrt(w[::2])
+        dof = b.size - idx.size
         if res.max() <= reject_sigmas:
             # links that disagree beyond their sd around loops widen every sd (variance factor)
-            dof = b.size - idx.size
             cov *= max(1.0, float(np.sum(res**2)) / dof) if dof >= 2 else 1.0
             break
         keep[used[int(np.argmax(res))]] = False  # the worst link out, then solved again
@@ -177,13 +178,17 @@ def solve_tilts(links: pd.DataFrame, scans: list[str], reference: str, *, sd_flo
             out.append((s, float(np.degrees(x[k])), float(np.degrees(x[k + 1])), sd, n_links[s]))
         else:
             out.append((s, np.nan, np.nan, np.nan, 0))
-    return pd.DataFrame(out, columns=["scan", "roll_deg", "pitch_deg", "sd_deg", "n_links"])
+    tilts = pd.DataFrame(out, columns=["scan", "roll_deg", "pitch_deg", "sd_deg", "n_links"])
+    return tilts.assign(dof=int(dof))
 
 
-def needs_levelling(tilts: pd.DataFrame, min_tilt_deg: float, sigmas: float) -> pd.DataFrame:
-    """The scans whose tilt is at least ``min_tilt_deg`` and ``sigmas`` times its sd."""
+def needs_levelling(tilts: pd.DataFrame, min_tilt_deg: float, sigmas: float, min_dof: int = 2) -> pd.DataFrame:
+    """The scans whose tilt is at least ``min_tilt_deg`` and ``sigmas`` times its sd, in a
+    network of pair tilts with ``min_dof`` or more redundant equations (loops that check the
+    tilts and scale their sd; a chain of pairs cannot tell a tilt from a biased pair)."""
     size = np.hypot(tilts["roll_deg"], tilts["pitch_deg"])
-    return tilts[((size >= min_tilt_deg) & (size >= sigmas * tilts["sd_deg"])).to_numpy()]
+    checked = tilts["dof"].to_numpy() >= min_dof if "dof" in tilts else np.zeros(len(tilts), bool)
+    return tilts[((size >= min_tilt_deg) & (size >= sigmas * tilts["sd_deg"])).to_numpy() & checked]
 
 
 def compose_tilt(current_deg, correction_deg) -> tuple[float, float]:
