@@ -57,6 +57,7 @@ def mapping_assets(campaign: Campaign) -> list:
         elevation_to_table,
         merge_elevation,
     )
+    from forestmap_assets.core.mapping.levelling import widen_levelled_links
     from forestmap_assets.core.mapping.link_selection import select_links
     from forestmap_assets.core.mapping.objective_scale import objective_scale, scale_sd, widen_links
     from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
@@ -90,6 +91,8 @@ def mapping_assets(campaign: Campaign) -> list:
         mp = params.mapping
         scale, scale_t, scale_n = objective_scale(accepted, mp.objective_scale_t)  # the objectives'
         accepted = widen_links(accepted, scale)
+        levelled = {e.id: e.tilt_sd_deg for e in campaign.scans if e.levelled_from is not None}
+        accepted = widen_levelled_links(accepted, levelled, mp.levelling_sd_floor_deg)
         if accepted.empty:  # only the reference scan is placed: it defines the frame
             ref_pose = pd.DataFrame([{c: 0.0 for c in POSE_COLUMNS[1:-1]}]).assign(scan=reference, registered=True)
             poses = poses_table(campaign, ref_pose)

@@ -51,6 +51,7 @@ class ScanEntry:
     pose: tuple[tuple[float, ...], ...] | None = None  # 4x4 scanner -> file frame (``pose:``)
     prior_source: str | None = None  # where ``a_priori`` came from: campaign.yaml, pose, e57 pose
     levelled_from: tuple[float, float] | None = None  # the entry's own tilt, when levelling.yaml's replaced it
+    tilt_sd_deg: float = 0.0  # the sd of that estimate (0: a measured tilt)
 
     @property
     def to_scanner(self):
@@ -244,7 +245,7 @@ def _with_levelling(root: Path, scans: list[ScanEntry]) -> list[ScanEntry]:
     for s in scans:
         rec = estimates.get(s.id)
         if rec is not None and max(abs(a - b) for a, b in zip(rec["from_tilt_deg"], s.tilt_deg, strict=True)) < 1e-9:
-            s = replace(s, tilt_deg=rec["tilt_deg"], levelled_from=s.tilt_deg)
+            s = replace(s, tilt_deg=rec["tilt_deg"], levelled_from=s.tilt_deg, tilt_sd_deg=rec["sd_deg"])
         out.append(s)
     return out
 

@@ -40,7 +40,7 @@ def _pair(value, where: str) -> tuple[float, float]:
 
 
 def read_levelling(root: Path) -> tuple[dict[str, dict], int]:
-    """The estimates of ``root/levelling.yaml`` (``{scan: {tilt_deg, from_tilt_deg}}``) and its
+    """The estimates of ``root/levelling.yaml`` (``{scan: {tilt_deg, from_tilt_deg, sd_deg}}``) and its
     rounds; ``({}, 0)`` without the file. A malformed file raises ``ValueError`` naming the
     file and the field."""
     path = Path(root) / LEVELLING_FILE
@@ -60,8 +60,12 @@ def read_levelling(root: Path) -> tuple[dict[str, dict], int]:
     for sid, rec in scans.items():
         if not isinstance(rec, dict):
             raise ValueError(f"{path}: scans.{sid}: expected tilt_deg and from_tilt_deg")
+        sd = rec.get("sd_deg", 0.0)
+        if isinstance(sd, bool) or not isinstance(sd, (int, float)) or not math.isfinite(sd) or sd < 0:
+            raise ValueError(f"{path}: scans.{sid}.sd_deg: expected a number >= 0, got {sd!r}")
         out[str(sid)] = {"tilt_deg": _pair(rec.get("tilt_deg"), f"{path}: scans.{sid}.tilt_deg"),
-                         "from_tilt_deg": _pair(rec.get("from_tilt_deg"), f"{path}: scans.{sid}.from_tilt_deg")}
+                         "from_tilt_deg": _pair(rec.get("from_tilt_deg"), f"{path}: scans.{sid}.from_tilt_deg"),
+                         "sd_deg": float(sd)}
     return out, rounds
 
 

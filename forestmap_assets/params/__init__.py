@@ -265,18 +265,18 @@ class MappingParams(_Stage):
     chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
     # network scale when the objectives' difference per metre is this many se (objective_scale)
     objective_scale_t: float = 3.0
-    # a scale no link shows, as a sigma only (per metre; objective_scale.scale_sd)
-    scale_sd_floor: float = 0.0
-    # sigmas x the root of the variance factor above 1, from this many redundant links (0: never)
-    variance_factor_min_dof: int = 0
+    scale_sd_floor: float = 0.0  # a scale no link shows, as a sigma only (per metre; objective_scale)
+    variance_factor_min_dof: int = 0  # sigmas x root of the variance factor > 1 from this many redundant links
     # correlation (x, y, z, heading) of links sharing a scan, pose sigmas only (0: the thesis;
     # optimal_map.shared_scan_covariance): branch-and-bound links, refined links
     scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     refined_scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
-    # scans levelled from shared stems (core/mapping/levelling) at a tilt this large and this many sd
+    # scans levelled from shared stems (core/mapping/levelling) at a tilt this large and this many sd;
+    # a levelled scan's tilt sd (at least the floor) widens its links' z sd by baseline x sd
     levelling: bool = True
     levelling_min_tilt_deg: float = 0.3
     levelling_sigmas: float = 5.0
+    levelling_sd_floor_deg: float = 0.02
 
 
 class TreeParams(_Stage):

@@ -139,3 +139,14 @@ def test_a_bad_levelling_file_names_the_file_and_field(tmp_path):
     (root / "levelling.yaml").write_text("scans:\n  B: {tilt_deg: [0.1], from_tilt_deg: [0, 0]}\n")
     with pytest.raises(CampaignError, match=r"levelling.yaml: scans.B.tilt_deg: expected two numbers"):
         load_campaign(root)
+
+
+def test_links_of_levelled_scans_get_the_tilts_z_sd():
+    from forestmap_assets.core.mapping.levelling import widen_levelled_links
+
+    links = pd.DataFrame({"scan": ["B", "C"], "reference": ["A", "A"], "dx": [12.0, 5.0], "dy": [0.0, 0.0],
+                          "sd_z": [0.001, 0.001]})
+    out = widen_levelled_links(links, {"B": 0.005}, floor_deg=0.02)
+    assert out["sd_z"].iloc[0] == pytest.approx(np.hypot(0.001, 12.0 * np.radians(0.02)))
+    assert out["sd_z"].iloc[1] == 0.001  # neither scan levelled by an estimate
+    assert widen_levelled_links(links, {}, 0.02) is links

@@ -201,3 +201,19 @@ def compose_tilt(current_deg, correction_deg) -> tuple[float, float]:
 
     roll, pitch, _ = roll_pitch_heading(levelling_rotation(*correction_deg) @ levelling_rotation(*current_deg))
     return roll, pitch
+
+
+def widen_levelled_links(links: pd.DataFrame, tilt_sd_deg: dict[str, float], floor_deg: float) -> pd.DataFrame:
+    """Links (``scan, reference, dx, dy, sd_z``) with the z sd of a scan levelled by an estimate
+    (``tilt_sd_deg``: scan -> that estimate's sd; others are not levelled here): a tilt left in
+    moves z by the tilt times the distance, so ``sd_z^2 + (baseline x tilt)^2``, the tilt the
+    root sum of the two scans' sd, each at least ``floor_deg`` (the estimate's own sd leaves
+    out the stems' common lean: Sylva's unlevelled surveys, z 0.1-0.6 cm off at 10-15 m)."""
+    if not tilt_sd_deg or links.empty:
+        return links
+    def sd(scan):
+        return np.array([max(tilt_sd_deg[s], floor_deg) if s in tilt_sd_deg else 0.0 for s in scan])
+    tilt = np.radians(np.hypot(sd(links["scan"].astype(str)), sd(links["reference"].astype(str))))
+    out = links.copy()
+    out["sd_z"] = np.hypot(out["sd_z"].to_numpy(float), np.hypot(out["dx"], out["dy"]).to_numpy(float) * tilt)
+    return out
