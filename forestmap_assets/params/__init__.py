@@ -276,7 +276,7 @@ class MappingParams(_Stage):
     levelling: bool = True
     levelling_min_tilt_deg: float = 0.3
     levelling_sigmas: float = 5.0
-    levelling_sd_floor_deg: float = 0.02
+    levelling_sd_floor_deg: float = 0.01
 
 
 class TreeParams(_Stage):
