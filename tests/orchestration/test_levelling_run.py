@@ -15,8 +15,9 @@ from forestmap_assets.sim.evaluate import pose_errors
 TILTS = [(0.0, 0.0), (0.6, -0.3), (-0.2, 0.55)]
 
 
-@pytest.mark.slow
-def test_tilted_scans_without_tilt_are_levelled_and_placed(tmp_path, monkeypatch):
+def _tilted_campaign(tmp_path, monkeypatch, params: dict | None = None):
+    """An own half-resolution campaign whose scan files are tilted by ``TILTS`` while its
+    ``campaign.yaml`` gives no tilt; returns the folder and the scan ids."""
     monkeypatch.setenv("FORESTMAP_HOME", str(tmp_path / "home"))
     monkeypatch.setenv("DAGSTER_HOME", str(tmp_path / "home" / "dagster"))
     root = simulate_campaign(tmp_path / "plot", scans=3, trees=30, plot_size=30.0, seed=7, resolution="half",
@@ -24,21 +25,32 @@ def test_tilted_scans_without_tilt_are_levelled_and_placed(tmp_path, monkeypatch
     doc = yaml.safe_load((root / "campaign.yaml").read_text())
     for scan in doc["scans"]:
         scan.pop("tilt_deg", None)  # the files are tilted, the campaign does not say so
+    if params:
+        doc["params"] = params
     (root / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return root, [s["id"] for s in doc["scans"]]
+
+
+def _pose_errors(root) -> pd.DataFrame:
+    from forestmap_assets.access import load_asset
+
+    poses = load_asset("optimal_map", campaign=root)["poses"]
+    return pose_errors(poses, pd.read_csv(root / "truth" / "poses.csv"))
+
+
+@pytest.mark.slow
+def test_tilted_scans_without_tilt_are_levelled_and_placed(tmp_path, monkeypatch):
+    root, ids = _tilted_campaign(tmp_path, monkeypatch)
     lines = []
     summary = run_campaign(root, progress=lines.append)
     assert summary.failures == []
     assert any("levelled by levelling.yaml" in line for line in lines), lines
     estimates, rounds = read_levelling(root)
-    ids = [s["id"] for s in doc["scans"]]
     assert rounds == 1 and set(estimates) == set(ids[1:])
     for sid, truth in zip(ids[1:], TILTS[1:], strict=True):
         assert estimates[sid]["tilt_deg"] == pytest.approx(truth, abs=0.1), (sid, estimates[sid])
         assert estimates[sid]["from_tilt_deg"] == (0.0, 0.0)
-    from forestmap_assets.access import load_asset
-
-    poses = load_asset("optimal_map", campaign=root)["poses"]
-    err = pose_errors(poses, pd.read_csv(root / "truth" / "poses.csv"))
+    err = _pose_errors(root)
     assert err["exy"].max() < 0.01 and err["ez"].abs().max() < 0.01, err
     # the next run finds everything levelled and fresh
     assert run_campaign(root, progress=lambda m: None).ran == []
@@ -48,19 +60,7 @@ def test_tilted_scans_without_tilt_are_levelled_and_placed(tmp_path, monkeypatch
 def test_without_levelling_the_same_scans_are_off(tmp_path, monkeypatch):
     """The case above with ``mapping.levelling: false``: the tilts stay in, and the poses are
     centimetres off (what the levelling is for)."""
-    monkeypatch.setenv("FORESTMAP_HOME", str(tmp_path / "home"))
-    monkeypatch.setenv("DAGSTER_HOME", str(tmp_path / "home" / "dagster"))
-    root = simulate_campaign(tmp_path / "plot", scans=3, trees=30, plot_size=30.0, seed=7, resolution="half",
-                             tilt_deg=TILTS)
-    doc = yaml.safe_load((root / "campaign.yaml").read_text())
-    for scan in doc["scans"]:
-        scan.pop("tilt_deg", None)
-    doc["params"] = {"mapping": {"levelling": False}}
-    (root / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    root, _ = _tilted_campaign(tmp_path, monkeypatch, params={"mapping": {"levelling": False}})
     assert run_campaign(root, progress=lambda m: None).failures == []
     assert not (root / "levelling.yaml").exists()
-    from forestmap_assets.access import load_asset
-
-    poses = load_asset("optimal_map", campaign=root)["poses"]
-    err = pose_errors(poses, pd.read_csv(root / "truth" / "poses.csv"))
-    assert err["ez"].abs().max() > 0.02, err
+    assert _pose_errors(root)["ez"].abs().max() > 0.02

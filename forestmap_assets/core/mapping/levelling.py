@@ -16,8 +16,10 @@ is the lever). In the scan's frame ``delta = R_z(-heading) w``, and with each sc
     delta_ij = t_i - R_z(-heading_ij) t_j
 
 which :func:`solve_tilts` solves by weighted least squares with the reference's tilt fixed at
-0 (the map's frame is the reference scan's, levelled as its entry says). Sylva's tilted seed 44:
-pairs with the reference read the tilts to 0.01-0.03 deg; levelled scans read 0.005-0.04 deg.
+0 (the map's frame is the reference scan's, levelled as its entry says). Sylva's unlevelled
+seed 44: the scans' tilts to 0.03 deg; levelled surveys read at most 0.02-0.06 deg (Sylva,
+rendered, own circular) and up to 0.32 deg (the own simulator's realistic stems and wide beam),
+hence :func:`needs_levelling`'s rules (``benchmarks/results.md``, "levelling").
 """
 
 from __future__ import annotations
