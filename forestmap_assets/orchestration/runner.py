@@ -121,7 +121,14 @@ def run_campaign(
         tilts = tilts_to_level(campaign, store_url) if full and not summary.failures else None
         if tilts is None:
             return summary
-        progress(level_campaign(campaign, tilts))  # the scans tilted: levelled, and again
+        try:
+            progress(level_campaign(campaign, tilts))  # the scans tilted: levelled, and again
+        except OSError as exc:  # a read-only campaign folder: the map as it is, said so
+            progress(f"scans tilted, but {exc.filename or 'levelling.yaml'} cannot be written "
+                     f"({exc.strerror or exc}); the map keeps their tilt")
+            if map_ready is not None:
+                map_ready(summary)
+            return summary
         campaign = load_campaign(folder)
         defs = build_definitions([campaign], store_url, executor=executor)
         again = _run(campaign, defs, instance, executor, store_url, progress, workers, dask_address,

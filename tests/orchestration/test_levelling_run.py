@@ -64,3 +64,19 @@ def test_without_levelling_the_same_scans_are_off(tmp_path, monkeypatch):
     assert run_campaign(root, progress=lambda m: None).failures == []
     assert not (root / "levelling.yaml").exists()
     assert _pose_errors(root)["ez"].abs().max() > 0.02
+
+
+@pytest.mark.slow
+def test_a_campaign_folder_that_cannot_take_the_file_still_gets_its_map(tmp_path, monkeypatch):
+    import forestmap_assets.orchestration.levelling as levelling
+
+    def refuse(root, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(root / "levelling.yaml"))
+
+    monkeypatch.setattr(levelling, "write_levelling", refuse)
+    root, _ = _tilted_campaign(tmp_path, monkeypatch)
+    lines, ready = [], []
+    summary = run_campaign(root, progress=lines.append, map_ready=ready.append)
+    assert summary.failures == [] and len(ready) == 1
+    assert any("cannot be written (Permission denied); the map keeps their tilt" in line for line in lines), lines
+    assert not (root / "levelling.yaml").exists()
