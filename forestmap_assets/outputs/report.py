@@ -280,6 +280,12 @@ def build_report(
         "(thesis 3.2.2, 6.4).</p>"
     )
     add(html_table(poses, {"heading_deg": 3, "sd_heading_deg": 3}))
+    levelled = [e for e in campaign.scans if e.levelled_from is not None]
+    if levelled:  # tilts estimated from the stems (core/mapping/levelling.py, levelling.yaml)
+        add(f'<p class="note">{len(levelled)} scan{"s" if len(levelled) > 1 else ""} levelled by the tilt '
+            "estimated from the stems they share (levelling.yaml; roll, pitch in deg, sd): "
+            + ", ".join(f"{html.escape(e.id)} {e.tilt_deg[0]:.3f} / {e.tilt_deg[1]:.3f} ({e.tilt_sd_deg:.3f})"
+                        for e in levelled) + ".</p>")
 
     add("<h2>Registrations</h2>")
     if regs is not None:
