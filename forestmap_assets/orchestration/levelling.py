@@ -5,8 +5,10 @@ than ``mapping.levelling_min_tilt_deg`` and ``levelling_sigmas`` sd (their campa
 no tilt, or a wrong one). :func:`level_campaign` then writes every estimated scan's tilt, composed
 with the one it was levelled by, to the campaign's ``levelling.yaml``
 (:mod:`forestmap_assets.io.levelling_file`); loaded again, the campaign levels those scans
-accordingly, their range images change, and the run goes again from them. At most
-:data:`MAX_ROUNDS` such rounds a campaign: the estimate is not refined for ever."""
+accordingly, their range images change, and the run goes again from them. A scan not yet
+levelled by an estimate (a new scan) is always levelled; scans already levelled are levelled
+again at most until the file has seen :data:`MAX_ROUNDS` rounds: the estimate is not refined for
+ever."""
 
 from __future__ import annotations
 
@@ -29,10 +31,19 @@ def tilts_to_level(campaign: Campaign, store_url: str | None):
         tilts = load_asset("scan_tilts", campaign=campaign, store_url=store_url)
     except FileNotFoundError:
         return None
-    if not len(tilts) or not tilts["level"].astype(bool).any():
-        return None
+    return tilts if levelling_due(campaign, tilts) else None
+
+
+def levelling_due(campaign: Campaign, tilts) -> bool:
+    """Whether ``tilts`` (``scan_tilts``) ask for a levelling round: a scan to level that no
+    estimate levels yet, or one that is levelled while rounds are left."""
+    flagged = set(tilts.loc[tilts["level"].astype(bool), "scan"].astype(str)) if len(tilts) else set()
+    if not flagged:
+        return False
+    if any(campaign.scan(s).levelled_from is None for s in flagged if s in campaign.scan_ids):
+        return True
     _, rounds = read_levelling(campaign.root)
-    return tilts if rounds < MAX_ROUNDS else None
+    return rounds < MAX_ROUNDS
 
 
 def level_campaign(campaign: Campaign, tilts) -> str:

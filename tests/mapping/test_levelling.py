@@ -150,3 +150,22 @@ def test_links_of_levelled_scans_get_the_tilts_z_sd():
     assert out["sd_z"].iloc[0] == pytest.approx(np.hypot(0.001, 12.0 * np.radians(0.02)))
     assert out["sd_z"].iloc[1] == 0.001  # neither scan levelled by an estimate
     assert widen_levelled_links(links, {}, 0.02) is links
+
+
+def test_a_new_scan_is_levelled_after_the_rounds_but_an_estimate_is_not_refined_for_ever(tmp_path):
+    from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.io.levelling_file import write_levelling
+    from forestmap_assets.orchestration.levelling import MAX_ROUNDS, levelling_due
+
+    root = _campaign(tmp_path)
+    tilts = pd.DataFrame({"scan": ["A", "B"], "level": [False, True]})
+    assert levelling_due(load_campaign(root), tilts)  # B has no estimate yet
+    assert not levelling_due(load_campaign(root), tilts.assign(level=False))
+    write_levelling(root, "A", {"B": {"tilt_deg": (0.5, 0.0), "from_tilt_deg": (0.0, 0.0), "sd_deg": 0.01}}, MAX_ROUNDS)
+    assert not levelling_due(load_campaign(root), tilts)  # B levelled, no rounds left
+    write_levelling(root, "A", {"B": {"tilt_deg": (0.5, 0.0), "from_tilt_deg": (0.0, 0.0), "sd_deg": 0.01}}, 1)
+    assert levelling_due(load_campaign(root), tilts)
+    # B's entry now gives another tilt: no estimate levels it, so it is levelled whatever the rounds
+    write_levelling(root, "A", {"B": {"tilt_deg": (0.5, 0.0), "from_tilt_deg": (0.0, 0.0), "sd_deg": 0.01}}, MAX_ROUNDS)
+    _campaign(tmp_path, tilt_b=(0.2, 0.1))
+    assert levelling_due(load_campaign(root), tilts)
