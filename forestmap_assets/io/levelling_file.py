@@ -76,7 +76,7 @@ def write_levelling(root: Path, reference: str, scans: dict[str, dict], rounds: 
     doc = {"reference": str(reference), "rounds": int(rounds),
            "scans": {str(s): {"tilt_deg": [round(float(v), 6) for v in r["tilt_deg"]],
                               "from_tilt_deg": [float(v) for v in r["from_tilt_deg"]],
-                              "sd_deg": round(float(r.get("sd_deg", float("nan"))), 6)}
+                              "sd_deg": round(float(r.get("sd_deg", 0.0)), 6)}
                      for s, r in scans.items()}}
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(HEADER + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))

@@ -30,15 +30,6 @@ import pandas as pd
 TILT_COLUMNS = ["tilt_x_deg", "tilt_y_deg", "sd_tilt_deg", "n_tilt"]
 
 
-def _axis_xy(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
-    """Horizontal axis points (n, m, 2) of cylinders (n rows) at heights ``z`` (n, m)."""
-    z0, z1 = cyl["z0"].to_numpy(float)[:, None], cyl["z1"].to_numpy(float)[:, None]
-    t = (z - z0) / np.where(np.abs(z1 - z0) > 1e-9, z1 - z0, 1e-9)
-    x = cyl["x0"].to_numpy(float)[:, None] + t * (cyl["x1"].to_numpy(float) - cyl["x0"].to_numpy(float))[:, None]
-    y = cyl["y0"].to_numpy(float)[:, None] + t * (cyl["y1"].to_numpy(float) - cyl["y0"].to_numpy(float))[:, None]
-    return np.stack([x, y], axis=-1)
-
-
 def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: float = 0.1,
               min_overlap_m: float = 0.3, huber_m: float = 0.01, min_stems: int = 8) -> dict:
     """Tilt of scan ``i`` against reference ``j`` in ``i``'s frame (module docstring):
@@ -52,18 +43,17 @@ def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: f
     is fitted with one intercept per stem and one ``s`` for all (Huber, ``huber_m``), so a
     stem's whole height is the lever (weights: common height times circles); its sd is
     clustered by stem."""
-    from forestmap_assets.core.mapping.trees import group_stems
+    from forestmap_assets.core.geometry import transform_points
+    from forestmap_assets.core.mapping.trees import axis_at, group_stems
 
     out = dict(zip(TILT_COLUMNS, [np.nan, np.nan, np.nan, 0], strict=True))
     if len(scan_cyl) == 0 or len(ref_cyl) == 0:
         return out
-    dx, dy, dz, heading = (float(v) for v in pose)
-    h = np.radians(heading)
+    h = np.radians(float(pose[3]))
     c, s = np.cos(h), np.sin(h)
-    a = scan_cyl.copy()
+    a = scan_cyl.copy()  # the scan's cylinders in the reference's frame
     for e in "01":
-        x, y = a[f"x{e}"].to_numpy(float), a[f"y{e}"].to_numpy(float)
-        a[f"x{e}"], a[f"y{e}"], a[f"z{e}"] = c * x - s * y + dx, s * x + c * y + dy, a[f"z{e}"].to_numpy(float) + dz
+        a[[f"x{e}", f"y{e}", f"z{e}"]] = transform_points(scan_cyl[[f"x{e}", f"y{e}", f"z{e}"]].to_numpy(float), pose)
     lo_a, hi_a = np.minimum(a["z0"], a["z1"]).to_numpy(), np.maximum(a["z0"], a["z1"]).to_numpy()
     lo_b, hi_b = np.minimum(ref_cyl["z0"], ref_cyl["z1"]).to_numpy(), np.maximum(ref_cyl["z0"], ref_cyl["z1"]).to_numpy()
     lo = np.maximum(lo_a[:, None], lo_b[None])
@@ -72,7 +62,8 @@ def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: f
     if not ia.size:
         return out
     z = np.stack([lo[ia, ib], hi[ia, ib]], axis=1)
-    d = _axis_xy(ref_cyl.iloc[ib], z) - _axis_xy(a.iloc[ia], z)  # (k, 2 heights, xy)
+    ra, rb = a.iloc[ia], ref_cyl.iloc[ib]
+    d = np.stack([axis_at(rb, z[:, k]) - axis_at(ra, z[:, k]) for k in range(2)], axis=1)  # (k, 2 heights, xy)
     near = np.hypot(*d.mean(axis=1).T) <= match_m
     stem = group_stems(ref_cyl)[ib[near]]
     n_circ = np.minimum(a["n_circles"].to_numpy(float)[ia], ref_cyl["n_circles"].to_numpy(float)[ib])[near]
@@ -81,13 +72,12 @@ def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: f
     _, g = np.unique(g, return_inverse=True)
     n_g = g.max() + 1 if g.size else 0
     # stems whose common heights span at least a metre carry the slope
-    span = np.bincount(g, np.ones_like(zz), n_g) if n_g else np.zeros(0)
     top = np.full(n_g, -np.inf)
     bottom = np.full(n_g, np.inf)
     np.maximum.at(top, g, zz)
     np.minimum.at(bottom, g, zz)
     levers = int(((top - bottom) >= 1.0).sum()) if n_g else 0
-    if levers < min_stems or span.size == 0:
+    if levers < min_stems:
         return out
     slope = np.zeros(2)
     ww = w.copy()

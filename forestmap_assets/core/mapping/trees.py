@@ -60,7 +60,7 @@ def cylinders_to_global(per_scan: dict[str, pd.DataFrame], poses: dict[str, tupl
     return out
 
 
-def _axis_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
+def axis_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
     """xy of each cylinder's axis line at heights ``z`` (extrapolated along the axis)."""
     p0 = cyl[["x0", "y0", "z0"]].to_numpy(float)
     p1 = cyl[["x1", "y1", "z1"]].to_numpy(float)
@@ -164,8 +164,8 @@ def group_stems(cyl: pd.DataFrame, merge_factor: float = 0.75, merge_tolerance_m
     lo = np.maximum(np.minimum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[i], np.minimum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[j])
     hi = np.minimum(np.maximum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[i], np.maximum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[j])
     zc = 0.5 * (lo + hi)
-    ai = _axis_at(cyl.iloc[i], zc)
-    aj = _axis_at(cyl.iloc[j], zc)
+    ai = axis_at(cyl.iloc[i], zc)
+    aj = axis_at(cyl.iloc[j], zc)
     dist = np.hypot(*(ai - aj).T)
     same = dist < merge_factor * np.minimum(radius[i], radius[j]) + merge_tolerance_m
     graph = coo_matrix((np.ones(same.sum()), (i[same], j[same])), shape=(n, n))
@@ -356,7 +356,7 @@ def merge_trees(
         dbh_weights = weights / (beam_exit_m + beam_divergence_rad * obs_range) ** 2
     stems = np.unique(labels)
     # first pass: approximate stem xy (at the lowest visible point) for the ground look-up
-    approx_xy = np.array([_axis_at(cyl[labels == s], np.full((labels == s).sum(), zlo[labels == s].min())).mean(0) for s in stems])
+    approx_xy = np.array([axis_at(cyl[labels == s], np.full((labels == s).sum(), zlo[labels == s].min())).mean(0) for s in stems])
     approx_r = np.array([np.average(radius[labels == s], weights=weights[labels == s]) for s in stems])
     if grid is not None:
         ground = ground_under(approx_xy, approx_r, grid.z, grid.x0, grid.y0, grid.cell_m,
@@ -380,7 +380,7 @@ def merge_trees(
         near = gap <= dbh_reach_m
         use = near if near.any() else gap == gap.min()
         w = weights[m][use]
-        xy = np.average(_axis_at(sub[use], zb[use]), axis=0, weights=w)
+        xy = np.average(axis_at(sub[use], zb[use]), axis=0, weights=w)
         dbh = np.nan
         # cylinders giving the DBH: near breast height, else within the extrapolation limit
         extrapolated = not near.any()

@@ -104,8 +104,6 @@ def stems_from_submap(submap: pd.DataFrame | None, *, merge_m: float = 0.4) -> n
     return np.column_stack([centres, np.full(len(centres), np.nan)])
 
 
-
-
 @dataclass(frozen=True)
 class _PairTable:
     """Every stem pair (i, j), i != j, of one scan sorted by distance (both orders kept)."""
