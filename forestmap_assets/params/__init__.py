@@ -415,12 +415,9 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # (inferred) links sharing a scan share its feature errors: measured correlation on
         # simulated forests (benchmarks/results.md "Whole pipeline"): branch-and-bound links at
         # quarter resolution, refined links (fitted on the raw points) at half resolution. The
-        # refined links' z 0.1 -> 0.4: on scans rendered inside a registered cloud a per-scan
-        # offset (sd 0.62 mm) is most of a refined link's z error (link noise 0.36 mm) and no
-        # number of links averages it out (benchmarks/results.md "scan_offsets"); heading 0 ->
-        # 0.15 -> 0.03 since the polish's jackknife sigma: scans' heading error / sd rendered
-        # 16-20 0.61 -> 0.72, Sylva 44-48 0.79 -> 0.92, own realistic 14-33 1.06 -> 1.17
-        # (results.md "heading_correlation")
+        # refined links' z 0.1 -> 0.4 -> 0.2, heading 0.15 -> 0.03 -> 0.08: scans' error / sd z,
+        # heading over Sylva 44-57 0.68, 1.13 -> 0.79, 1.05; rendered 16-22 1.01, 0.85 -> 1.16,
+        # 0.80; own realistic 55-64 0.98, 1.19 -> 1.10, 1.14 (results.md "z_heading_correlation")
         # z_residual_sigmas 8 -> 5: with the ground-like cells (registration.ground_block_m) the
         # ground dz's sd holds (pairs' error / sd 0.73); over 29 surveys one link lay beyond 3
         # sd in z, at 6.9 (Sylva 9 s4-s1: 5 cm off with 1778 cells), and moved its scan 2 mm
@@ -430,7 +427,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # 0.97 -> 0.81 / 0.85, with 13, 18, 20 1.18 / 1.12 -> 0.95 / 0.95 (within 2 sd 93 / 91 ->
         # 98 / 98 %); rendered unchanged. Variance factor: Sylva 36's loops closed 1.3 / 1.7 x worse
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05),
-                    "refined_scan_correlation": (0.1, 0.1, 0.4, 0.03), "z_residual_sigmas": 5.0,
+                    "refined_scan_correlation": (0.1, 0.1, 0.2, 0.08), "z_residual_sigmas": 5.0,
                     "scale_sd_floor": 8e-5, "variance_factor_min_dof": 3},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
