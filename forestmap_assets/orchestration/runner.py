@@ -109,16 +109,22 @@ def run_campaign(
         claim_campaign_name(campaign, store_url, record=False)  # fail before any work
     defs = build_definitions([campaign], store_url, executor=executor)
     full = stages is None
+    checked: list = []  # the stored scan_tilts' verdict, read once when the map is final
+
+    def due():
+        if not checked:
+            checked.append(tilts_to_level(campaign, store_url) if full else None)
+        return checked[0]
 
     def ready(summary: RunSummary) -> None:  # not for a map whose scans are levelled next
-        if map_ready is not None and not (full and tilts_to_level(campaign, store_url) is not None):
+        if map_ready is not None and due() is None:
             map_ready(summary)
 
     # resolve definitions against this instance (not a stale one a caller left in the context)
     with set_defs_state_storage(instance.defs_state_storage):
         summary = _run(campaign, defs, instance, executor, store_url, progress, workers, dask_address,
                        stages, start, share_namespace, idle, ready if map_ready is not None else None)
-        tilts = tilts_to_level(campaign, store_url) if full and not summary.failures else None
+        tilts = due() if not summary.failures else None
         if tilts is None:
             return summary
         try:
