@@ -196,6 +196,62 @@ def test_text_variants(tmp_path, name, text):
     np.testing.assert_array_equal(back.rgb[img.valid], c)
 
 
+def _ply(path: Path, fmt: str, xyz: np.ndarray, rgb: np.ndarray | None, coord: str) -> Path:
+    """A PLY as other software writes it: ``fmt`` (ascii, binary_little_endian,
+    binary_big_endian), ``coord`` float or double, CloudCompare-style scalar fields."""
+    n = len(xyz)
+    cols = [
+        ("x", coord, xyz[:, 0]),
+        ("y", coord, xyz[:, 1]),
+        ("z", coord, xyz[:, 2]),
+        ("scalar_Intensity", "float", np.linspace(0.0, 1.0, n)),
+        ("scalar_Return_Number", "uchar", np.ones(n)),
+    ]
+    if rgb is not None:
+        cols += [(c, "uchar", rgb[:, i]) for i, c in enumerate(("red", "green", "blue"))]
+    head = f"ply\nformat {fmt} 1.0\ncomment other software\nelement vertex {n}\n"
+    head += "".join(f"property {t} {name}\n" for name, t, _ in cols) + "end_header\n"
+    if fmt == "ascii":
+        rows = zip(
+            *[[str(int(v)) if t == "uchar" else repr(float(v)) for v in a] for _, t, a in cols],
+            strict=True,
+        )
+        path.write_text(head + "".join(" ".join(r) + "\n" for r in rows))
+        return path
+    order = ">" if fmt == "binary_big_endian" else "<"
+    table = np.empty(
+        n,
+        [(name, order + {"float": "f4", "double": "f8", "uchar": "u1"}[t]) for name, t, _ in cols],
+    )
+    for name, _, a in cols:
+        table[name] = a
+    path.write_bytes(head.encode() + table.tobytes())
+    return path
+
+
+@pytest.mark.parametrize(
+    "fmt, coord, with_rgb",
+    [
+        ("binary_little_endian", "double", True),
+        ("binary_big_endian", "float", True),
+        ("ascii", "float", True),
+        ("binary_little_endian", "double", False),
+    ],
+)
+def test_ply_variants_of_other_software(tmp_path, fmt, coord, with_rgb):
+    img = synthetic_image(with_rgb=True)
+    p = sensor_points(img).astype(np.float32).astype(np.float64)  # exact in both widths
+    rgb = img.rgb[img.valid] if with_rgb else None
+    back = read_scan(_ply(tmp_path / "s.ply", fmt, p, rgb, coord))
+    assert back.shape == img.shape
+    np.testing.assert_array_equal(back.valid, img.valid)
+    assert_same_point_set(sensor_points(back), p)
+    if with_rgb:
+        np.testing.assert_array_equal(back.rgb[img.valid], rgb)
+    else:
+        assert back.rgb is None
+
+
 def test_text_colours_in_unit_range_and_las_8bit_colours(tmp_path):
     img = synthetic_image(with_rgb=True)
     p, c = sensor_points(img), img.rgb[img.valid]
