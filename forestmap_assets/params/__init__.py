@@ -432,6 +432,9 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         "registration": {"stem_polish": True},
+        # (inferred) colour scans refined both ways too: HICP took 13 s a pair and placed scans
+        # worse (own realistic with colour, 70-72; results.md "colour_refine")
+        "refine": {"method": "point_to_plane"},
     },
     "outdoor": {
         "circles": {"symmetry_threshold_m": 0.0041},

@@ -104,6 +104,8 @@ def test_presets_follow_thesis_tables():
     assert outdoor.cylinders.curvature_deg == 10.0 and forest.cylinders.curvature_deg == 12.0
     assert indoor.lines.min_length_m == 2.0 and outdoor.lines.min_length_m == 1.5
     assert forest.registration.sigma_m == 0.035 and forest.registration.final_cell_m == 0.02
+    # a forest's colour scans are refined both ways (point to plane), not by hue-assisted ICP
+    assert forest.refine.method == "point_to_plane" and outdoor.refine.method == "auto"
     assert set(PRESETS) == {"forest", "outdoor", "indoor"}
     # a parameter change changes exactly that stage's digest
     changed = resolve_params("forest", {"cylinders": {"min_length_m": 0.7}})

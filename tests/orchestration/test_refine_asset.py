@@ -1,6 +1,7 @@
 """The ``refined_registrations`` asset on a small simulated coloured campaign: range images
 materialised through Dagster, a branch-and-bound result placed in the store, the refinement
-run as an asset (HICP for colour scans) and compared with the truth."""
+run as an asset (HICP for colour scans, which a forest campaign asks for with
+``refine.method: hicp``) and compared with the truth."""
 
 from __future__ import annotations
 
@@ -40,6 +41,9 @@ def _registrations(truth: pd.DataFrame, offset) -> dict[str, pd.DataFrame]:
 def test_refined_registrations_asset_uses_hicp_on_colour_scans(tmp_path, _isolated_home):
     root = simulate_campaign(tmp_path / "plot", scans=2, trees=20, plot_size=24.0, resolution="half", seed=2,
                              fmt="e57", scanner_kwargs={"colour": True}, write_labels=False)
+    assert load_campaign(root).params.refine.method == "point_to_plane"  # the forest's own choice
+    manifest = root / "campaign.yaml"
+    manifest.write_text(manifest.read_text() + "params:\n  refine:\n    method: hicp\n")
     campaign = load_campaign(root)
     defs = build_definitions([campaign])
     key = asset_key(campaign, "refined_registrations")
