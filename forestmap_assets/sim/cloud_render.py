@@ -36,20 +36,23 @@ def _disc_offsets(k: int) -> np.ndarray:
 def render_scan(points: np.ndarray, origin, *, step_deg: float = 0.1, splat_m: float = 0.007,
                 min_range_m: float = 0.5, max_range_m: float = 60.0,
                 elevation_deg: tuple[float, float] = (-50.0, 60.0), max_splat_px: int = 6,
-                range_sigma_m: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
+                range_sigma_m: float = 0.0, rng: np.random.Generator | None = None,
+                source: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """The returns (m, 3) of a scan at ``origin`` rendered from ``points`` (n, 3, same frame),
-    relative to ``origin`` (world axes); see the module docstring."""
+    relative to ``origin`` (world axes); see the module docstring. ``source``: also each
+    return's source point (m,), an index into ``points`` (its colour is the return's)."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     v = p - np.asarray(origin, dtype=np.float64).reshape(1, 3)
     r = np.sqrt((v * v).sum(axis=1))
     keep = (r > min_range_m) & (r < max_range_m)
+    index = np.flatnonzero(keep)
     v, r = v[keep], r[keep]
     step = np.radians(step_deg)
     el0, el1 = np.radians(elevation_deg[0]), np.radians(elevation_deg[1])
     az = np.arctan2(v[:, 1], v[:, 0])
     el = np.arcsin(np.clip(v[:, 2] / r, -1.0, 1.0))
     inside = (el >= el0) & (el < el1)
-    v, r, az, el = v[inside], r[inside], az[inside], el[inside]
+    v, r, az, el, index = v[inside], r[inside], az[inside], el[inside], index[inside]
     n_cols = int(np.ceil(2 * np.pi / step))
     n_rows = int(np.ceil((el1 - el0) / step))
     col = np.minimum(((az + np.pi) / step).astype(np.int64), n_cols - 1)
@@ -83,59 +86,76 @@ def render_scan(points: np.ndarray, origin, *, step_deg: float = 0.1, splat_m: f
     if range_sigma_m:
         rng = rng or np.random.default_rng(0)
         dep = dep + rng.normal(0.0, range_sigma_m, dep.size)
-    return ray * dep[:, None]
+    return (ray * dep[:, None], index[s]) if source else ray * dep[:, None]
 
 
-def write_ply_xyz(path, xyz: np.ndarray) -> None:
-    """A binary little-endian PLY of float32 ``x, y, z``, written atomically."""
+def write_ply_xyz(path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> None:
+    """A binary little-endian PLY of float32 ``x, y, z`` (and uchar ``red, green, blue`` from
+    ``rgb``, (n, 3) uint8), written atomically."""
     from forestmap_assets.io.writers import atomic_write
 
-    xyz = np.ascontiguousarray(xyz, dtype="<f4").reshape(-1, 3)
-    head = ("ply\nformat binary_little_endian 1.0\n"
-            f"element vertex {len(xyz)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+    xyz = np.asarray(xyz).reshape(-1, 3)
+    names = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + (
+        [] if rgb is None else [("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    table = np.empty(len(xyz), names)
+    for i, c in enumerate("xyz"):
+        table[c] = xyz[:, i]
+    if rgb is not None:
+        for i, c in enumerate(("red", "green", "blue")):
+            table[c] = rgb[:, i]
+    props = "".join(f"property {'float' if t == '<f4' else 'uchar'} {n}\n" for n, t in names)
+    head = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\n{props}end_header\n"
     with atomic_write(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(head.encode("ascii"))
-            f.write(xyz.tobytes())
+            f.write(table.tobytes())
 
 
 def registered_cloud(world, positions: np.ndarray, *, seed: int = 0, n_cols: int = 6000,
                      n_rows: int = 1440, range_sigma_m: float = 0.003, voxel_m: float = 0.01,
-                     scanner_height_m: float = 1.5, progress=None) -> np.ndarray:
+                     scanner_height_m: float = 1.5, colour: bool = False,
+                     progress=None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """The "registered TLS cloud" of ``world`` (a :class:`~.forest.Forest`): scans from
     ``positions`` (n, 2) with a survey-grade scanner (a finer grid than the thesis's, 3 mm range
     noise, a 0.3 mrad beam leaving a 5 mm exit; inferred) merged in the world frame and thinned
-    to one point per ``voxel_m`` voxel, as such clouds are shared."""
+    to one point per ``voxel_m`` voxel, as such clouds are shared. ``colour``: also each
+    point's 8-bit RGB (n, 3), as a colourised cloud has (``sim/colour.py``)."""
     from forestmap_assets.core.cloud import voxel_subsample
     from forestmap_assets.sim.scanner import ScanPose, VirtualScanner
 
     scanner = VirtualScanner(world, resolution="full", n_cols=n_cols, n_rows=n_rows,
                              range_sigma_m=range_sigma_m, beam_exit_m=0.005, divergence_mrad=0.3,
-                             intensity=False)
+                             intensity=False, colour=colour)
     rng = np.random.default_rng(seed)
     ground = world.ground.height(positions[:, 0], positions[:, 1])
-    parts = []
+    parts, colours = [], []
     for i, (x, y) in enumerate(positions):
         pose = ScanPose(float(x), float(y), float(ground[i] + scanner_height_m),
                         float(rng.uniform(-180.0, 180.0)))
-        pts = scanner.scan(pose, rng).world_points(noisy=True).reshape(-1, 3)
-        parts.append(pts[np.isfinite(pts).all(axis=1)])
+        scan = scanner.scan(pose, rng)
+        pts = scan.world_points(noisy=True).reshape(-1, 3)
+        ok = np.isfinite(pts).all(axis=1)
+        parts.append(pts[ok])
+        if colour:
+            colours.append(scan.image.rgb.reshape(-1, 3)[ok])
         if progress:
             progress(f"source scan {i + 1}/{len(positions)}: {len(parts[-1])} points")
     cloud = np.vstack(parts)
-    return cloud[voxel_subsample(cloud, voxel_m)] if voxel_m else cloud
+    keep = voxel_subsample(cloud, voxel_m) if voxel_m else np.arange(len(cloud))
+    return (cloud[keep], np.vstack(colours)[keep]) if colour else cloud[keep]
 
 
 def render_campaign(out, *, seed: int = 1, scans: int = 6, source_scans: int = 9, trees: int = 40,
                     plot_size: float = 40.0, stems: str = "realistic", step_deg: float = 0.1,
-                    splat_m: float = 0.007, range_sigma_m: float = 0.003,
+                    splat_m: float = 0.007, range_sigma_m: float = 0.003, colour: bool = False,
                     source_kwargs: dict | None = None, progress=None):
     """A campaign folder of ``scans`` PLY scans rendered (:func:`render_scan`) inside the
     registered cloud (:func:`registered_cloud`) of a simulated forest seen from
     ``source_scans`` other positions: ``campaign.yaml`` without prior or sensor block,
     ``scans/<id>.ply`` in each scanner's levelled frame (unknown heading), ``truth/poses.csv``
     and ``truth/trees.csv`` (axis at 1.3 m, DBH, renders that see the stem) in the frame of the
-    first scan. Returns the folder's path."""
+    first scan; ``colour``: the cloud is colourised and the scans carry its RGB. Returns the
+    folder's path."""
     from pathlib import Path
 
     import pandas as pd
@@ -154,8 +174,9 @@ def render_campaign(out, *, seed: int = 1, scans: int = 6, source_scans: int = 9
     world = make_forest(trees, plot_size, n_scans=scans + source_scans,
                         scan_xy=np.vstack([render_xy, source_xy]),
                         seed=np.random.default_rng(ss_forest), stems=stems)
-    cloud = registered_cloud(world, source_xy, seed=int(ss_source.generate_state(1)[0]),
+    cloud = registered_cloud(world, source_xy, seed=int(ss_source.generate_state(1)[0]), colour=colour,
                              progress=say, **(source_kwargs or {}))
+    cloud, rgb = cloud if colour else (cloud, None)
     say(f"registered cloud: {len(cloud)} points from {source_scans} scans")
     rng = np.random.default_rng(ss_render)
     ground = world.ground.height(render_xy[:, 0], render_xy[:, 1])
@@ -165,9 +186,10 @@ def render_campaign(out, *, seed: int = 1, scans: int = 6, source_scans: int = 9
     ids = [f"r{k + 1}" for k in range(scans)]
     seen = np.zeros(len(truth), int)
     for k, sid in enumerate(ids):
-        rel = render_scan(cloud, origins[k], step_deg=step_deg, splat_m=splat_m,
-                          range_sigma_m=range_sigma_m, rng=rng)
-        write_ply_xyz(out / "scans" / f"{sid}.ply", rel @ rot_z(headings[k]))  # world -> scanner
+        rel, src = render_scan(cloud, origins[k], step_deg=step_deg, splat_m=splat_m,
+                               range_sigma_m=range_sigma_m, rng=rng, source=True)
+        write_ply_xyz(out / "scans" / f"{sid}.ply", rel @ rot_z(headings[k]),  # world -> scanner
+                      None if rgb is None else rgb[src])
         pts = rel + origins[k]
         band = np.abs(pts[:, 2, None] - (truth["z"].to_numpy() + 1.3)) < 0.5
         near = np.hypot(pts[:, 0, None] - truth["x"].to_numpy(), pts[:, 1, None] - truth["y"].to_numpy())

@@ -58,3 +58,12 @@ def test_render_range_noise_and_ply(tmp_path):
 
     back = np.asarray(o3d.io.read_point_cloud(str(tmp_path / "s.ply")).points)
     assert np.allclose(back, a, atol=1e-5)
+    # each return's source point: the same depth (its own point, or its splat on the pixel's ray)
+    c, src = render_scan(cloud, (0.0, 0.0, 0.5), step_deg=0.2, splat_m=0.02, source=True)
+    assert np.array_equal(c, a)
+    assert np.allclose(np.linalg.norm(a, axis=1), np.linalg.norm(cloud[src] - (0.0, 0.0, 0.5), axis=1))
+    rgb = (np.arange(len(cloud))[:, None] * [1, 7, 13] % 256).astype(np.uint8)
+    write_ply_xyz(tmp_path / "c.ply", a, rgb[src])
+    pc = o3d.t.io.read_point_cloud(str(tmp_path / "c.ply"))
+    assert np.allclose(pc.point.positions.numpy(), a, atol=1e-5)
+    assert np.array_equal(pc.point.colors.numpy(), rgb[src])
