@@ -59,7 +59,12 @@ def mapping_assets(campaign: Campaign) -> list:
     )
     from forestmap_assets.core.mapping.levelling import widen_levelled_links
     from forestmap_assets.core.mapping.link_selection import select_links
-    from forestmap_assets.core.mapping.objective_scale import objective_scale, scale_sd, widen_links
+    from forestmap_assets.core.mapping.objective_scale import (
+        objective_scale,
+        scale_sd,
+        take_out,
+        widen_links,
+    )
     from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
     from forestmap_assets.core.mapping.residuals import variance_factors, with_variance_factors
     from forestmap_assets.core.mapping.trees import beam_options, cylinders_to_global, merge_trees
@@ -90,7 +95,8 @@ def mapping_assets(campaign: Campaign) -> list:
         accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
         mp = params.mapping
         scale, scale_t, scale_n = objective_scale(accepted, mp.objective_scale_t)  # the objectives'
-        accepted = widen_links(accepted, scale)
+        accepted, sigma_scale = take_out(accepted, scale, scale_t, mp.objective_scale_correct_t)
+        accepted = widen_links(accepted, sigma_scale)
         levelled = {e.id: e.tilt_sd_deg for e in campaign.scans if e.levelled_from is not None}
         accepted = widen_levelled_links(accepted, levelled, mp.levelling_sd_floor_deg)
         if accepted.empty:  # only the reference scan is placed: it defines the frame
@@ -118,12 +124,13 @@ def mapping_assets(campaign: Campaign) -> list:
             links = sel.links
             residuals = sel.solution.residuals
         factors = variance_factors(residuals, int(poses["registered"].sum()), mp.variance_factor_min_dof)
-        poses = scale_sd(with_variance_factors(poses, factors), scale, mp.scale_sd_floor)
+        poses = scale_sd(with_variance_factors(poses, factors), sigma_scale, mp.scale_sd_floor)
         bundle = {"poses": poses, "links": links, "residuals": residuals}
         meta = {
             "objective_scale_mm_per_m": round(1000 * scale, 4),
             "objective_scale_t": round(float(scale_t), 2) if np.isfinite(scale_t) else str(scale_t),
             "objective_scale_links": scale_n,
+            "objective_scale_taken_out": bool(scale) and not sigma_scale,
             "variance_factors": MetadataValue.json([round(float(f), 3) for f in factors]),
             "registered": int(poses["registered"].sum()),
             "unregistered": MetadataValue.json(poses.loc[~poses["registered"], "scan"].tolist()),

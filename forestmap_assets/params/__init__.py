@@ -263,8 +263,10 @@ class MappingParams(_Stage):
     max_iterations: int = 50
     check_new_link: bool = True
     chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
-    # network scale when the objectives' difference per metre is this many se (objective_scale)
+    # network scale when the objectives' difference per metre is this many se (objective_scale);
+    # from correct_t se it is taken out of the refined links instead (objective_scale.take_out)
     objective_scale_t: float = 3.0
+    objective_scale_correct_t: float = float("inf")
     scale_sd_floor: float = 0.0  # a scale no link shows, as a sigma only (per metre; objective_scale)
     variance_factor_min_dof: int = 0  # sigmas x root of the variance factor > 1 from this many redundant links
     # correlation (x, y, z, heading) of links sharing a scan, pose sigmas only (0: the thesis;
@@ -412,23 +414,19 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # segment): circle models on scans rendered inside a registered cloud 7.2 / 4.7 -> 4.9 /
         # 3.7 s a scan, the same poses and DBH (benchmarks/results.md "fit_points")
         "circles": {"symmetry_statistic": "noise_corrected", "max_fit_points": 256},
-        # (inferred) links sharing a scan share its feature errors: measured correlation on
-        # simulated forests (benchmarks/results.md "Whole pipeline"): branch-and-bound links at
-        # quarter resolution, refined links (fitted on the raw points) at half resolution. The
-        # refined links' z 0.1 -> 0.4 -> 0.2, heading 0.15 -> 0.03 -> 0.08: scans' error / sd z,
-        # heading over Sylva 44-57 0.68, 1.13 -> 0.79, 1.05; rendered 16-22 1.01, 0.85 -> 1.16,
+        # (inferred) links sharing a scan share its feature errors (results.md "Whole pipeline");
+        # the refined links' z 0.1 -> 0.4 -> 0.2, heading 0.15 -> 0.03 -> 0.08: scans' error / sd
+        # z, heading over Sylva 44-57 0.68, 1.13 -> 0.79, 1.05; rendered 16-22 1.01, 0.85 -> 1.16,
         # 0.80; own realistic 55-64 0.98, 1.19 -> 1.10, 1.14 (results.md "z_heading_correlation")
-        # z_residual_sigmas 8 -> 5: with the ground-like cells (registration.ground_block_m) the
-        # ground dz's sd holds (pairs' error / sd 0.73); over 29 surveys one link lay beyond 3
-        # sd in z, at 6.9 (Sylva 9 s4-s1: 5 cm off with 1778 cells), and moved its scan 2 mm
-        # scale_sd_floor 0.08 mm/m: fitted against the truth, Sylva's networks had scales about the
-        # reference of 0.06 mm/m RMS over 20 surveys, up to 0.15 (13, 18, 20), which the refinement
-        # objectives' difference did not show (t < 3); scans' error / sd x / y, Sylva 1-8 0.94 /
-        # 0.97 -> 0.81 / 0.85, with 13, 18, 20 1.18 / 1.12 -> 0.95 / 0.95 (within 2 sd 93 / 91 ->
-        # 98 / 98 %); rendered unchanged. Variance factor: Sylva 36's loops closed 1.3 / 1.7 x worse
+        # z_residual_sigmas 8 -> 5: with the ground-like cells the ground dz's sd holds (pairs'
+        # error / sd 0.73; results.md "ground_cells"). scale_sd_floor 0.08 mm/m: Sylva's networks
+        # had scales of 0.06 mm/m RMS over 20 surveys, up to 0.15, which the objectives did not
+        # show (results.md "scale_floor"). Variance factor: Sylva 36's loops closed 1.3 / 1.7 x
+        # worse. objective_scale_correct_t: renders' xy errors, median 0.36 -> 0.10 cm
+        # (results.md "scale_taken_out")
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05),
                     "refined_scan_correlation": (0.1, 0.1, 0.2, 0.08), "z_residual_sigmas": 5.0,
-                    "scale_sd_floor": 8e-5, "variance_factor_min_dof": 3},
+                    "scale_sd_floor": 8e-5, "variance_factor_min_dof": 3, "objective_scale_correct_t": 6.0},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         "registration": {"stem_polish": True},

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.mapping.objective_scale import objective_scale, scale_sd, widen_links
+from forestmap_assets.core.mapping.objective_scale import (
+    objective_scale,
+    scale_sd,
+    shorten_links,
+    take_out,
+    widen_links,
+)
 
 
 def _links(spread_per_m, rng, refined=True):
@@ -51,3 +57,24 @@ def test_links_and_scans_take_the_scale_along_their_baselines():
     np.testing.assert_allclose(floored["sd_x"], [0.0, np.hypot(0.002, 0.00096)])
     np.testing.assert_allclose(scale_sd(poses, -0.0004, floor=0.00008)["sd_x"], out["sd_x"])
     assert scale_sd(poses, 0.0) is poses
+
+
+def test_a_clear_scale_is_taken_out_of_the_refined_links():
+    rng = np.random.default_rng(3)
+    links = _links(0.00035 + rng.normal(0, 0.00005, 6), rng)
+    links.loc[0, "refined"] = False  # a branch-and-bound link keeps its length
+    scale, t, _ = objective_scale(links)
+    assert t > 6
+    short, sigma = take_out(links, scale, t, correct_t=6.0)
+    assert sigma == 0.0
+    np.testing.assert_allclose(short.loc[0, ["dx", "dy"]].to_numpy(float), links.loc[0, ["dx", "dy"]].to_numpy(float))
+    before = np.hypot(links["dx"], links["dy"]).to_numpy()[1:]
+    after = np.hypot(short["dx"], short["dy"]).to_numpy()[1:]
+    np.testing.assert_allclose(before - after, scale * before)  # along each baseline, per metre
+    np.testing.assert_allclose(np.arctan2(short["dy"], short["dx"]), np.arctan2(links["dy"], links["dx"]))
+    # under the threshold (or the campaign's default, inf) the scale stays a sigma
+    kept, sigma = take_out(links, scale, t, correct_t=float("inf"))
+    assert kept is links and sigma == scale
+    same, sigma = take_out(links, 0.0, 0.0, 6.0)
+    assert same is links and sigma == 0.0
+    assert shorten_links(links, 0.0) is links

@@ -57,6 +57,31 @@ def objective_scale(links: pd.DataFrame, t_min: float = 3.0, min_links: int = 3)
     return (float(np.median(per_m)) if abs(t) >= t_min else 0.0), t, n
 
 
+def shorten_links(links: pd.DataFrame, scale: float) -> pd.DataFrame:
+    """``links`` with each refined link's baseline (``dx, dy``) shortened by ``scale`` (per
+    metre)."""
+    if not scale:
+        return links
+    out = links.copy()
+    hit = _with_spread(links)
+    for d in ("dx", "dy"):
+        out[d] = np.where(hit, (1.0 - scale) * out[d].to_numpy(float), out[d].to_numpy(float))
+    return out
+
+
+def take_out(links: pd.DataFrame, scale: float, t: float, correct_t: float) -> tuple[pd.DataFrame, float]:
+    """``(links, sigma scale)``: where the objectives' common scale is clear (``|t| >=
+    correct_t``, ``mapping.objective_scale_correct_t``) the refined links take the model-normal
+    objective's length (:func:`shorten_links`) and no scale is left as a sigma (the floor
+    ``mapping.scale_sd_floor`` still applies); else the links stay and the scale is a sigma
+    (:func:`widen_links`, :func:`scale_sd`). Scans rendered inside a registered cloud, where
+    the splats widen every silhouette, differ by 0.28-0.38 mm/m at t 9-16; Sylva's surveys at
+    t -0.8 to 4.2 (results.md "scale_taken_out")."""
+    if scale and abs(t) >= correct_t:
+        return shorten_links(links, scale), 0.0
+    return links, scale
+
+
 def widen_links(links: pd.DataFrame, scale: float) -> pd.DataFrame:
     """``links`` with each refined link's x, y sigma grown by ``|scale| L`` along its baseline
     (``|scale dx|``, ``|scale dy|`` in quadrature)."""
