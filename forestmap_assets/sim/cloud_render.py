@@ -114,12 +114,12 @@ def write_ply_xyz(path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> None:
 def registered_cloud(world, positions: np.ndarray, *, seed: int = 0, n_cols: int = 6000,
                      n_rows: int = 1440, range_sigma_m: float = 0.003, voxel_m: float = 0.01,
                      scanner_height_m: float = 1.5, colour: bool = False,
-                     progress=None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                     progress=None) -> tuple[np.ndarray, np.ndarray | None]:
     """The "registered TLS cloud" of ``world`` (a :class:`~.forest.Forest`): scans from
     ``positions`` (n, 2) with a survey-grade scanner (a finer grid than the thesis's, 3 mm range
     noise, a 0.3 mrad beam leaving a 5 mm exit; inferred) merged in the world frame and thinned
-    to one point per ``voxel_m`` voxel, as such clouds are shared. ``colour``: also each
-    point's 8-bit RGB (n, 3), as a colourised cloud has (``sim/colour.py``)."""
+    to one point per ``voxel_m`` voxel, as such clouds are shared: its points (n, 3) and, with
+    ``colour``, their 8-bit RGB (n, 3) as a colourised cloud has (``sim/colour.py``; else None)."""
     from forestmap_assets.core.cloud import voxel_subsample
     from forestmap_assets.sim.scanner import ScanPose, VirtualScanner
 
@@ -142,7 +142,7 @@ def registered_cloud(world, positions: np.ndarray, *, seed: int = 0, n_cols: int
             progress(f"source scan {i + 1}/{len(positions)}: {len(parts[-1])} points")
     cloud = np.vstack(parts)
     keep = voxel_subsample(cloud, voxel_m) if voxel_m else np.arange(len(cloud))
-    return (cloud[keep], np.vstack(colours)[keep]) if colour else cloud[keep]
+    return cloud[keep], (np.vstack(colours)[keep] if colour else None)
 
 
 def render_campaign(out, *, seed: int = 1, scans: int = 6, source_scans: int = 9, trees: int = 40,
@@ -174,9 +174,8 @@ def render_campaign(out, *, seed: int = 1, scans: int = 6, source_scans: int = 9
     world = make_forest(trees, plot_size, n_scans=scans + source_scans,
                         scan_xy=np.vstack([render_xy, source_xy]),
                         seed=np.random.default_rng(ss_forest), stems=stems)
-    cloud = registered_cloud(world, source_xy, seed=int(ss_source.generate_state(1)[0]), colour=colour,
-                             progress=say, **(source_kwargs or {}))
-    cloud, rgb = cloud if colour else (cloud, None)
+    cloud, rgb = registered_cloud(world, source_xy, seed=int(ss_source.generate_state(1)[0]), colour=colour,
+                                  progress=say, **(source_kwargs or {}))
     say(f"registered cloud: {len(cloud)} points from {source_scans} scans")
     rng = np.random.default_rng(ss_render)
     ground = world.ground.height(render_xy[:, 0], render_xy[:, 1])
