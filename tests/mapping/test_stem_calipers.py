@@ -11,6 +11,7 @@ import pytest
 from forestmap_assets.core.mapping.stem_calipers import (
     blend_calipers,
     caliper_dbh,
+    outline_refs,
     silhouette_edges,
     tree_calipers,
     width_function,
@@ -102,7 +103,7 @@ def test_sides_of_several_scans_give_a_circle_where_no_scan_saw_both():
     assert np.abs(side["h"] - support).max() <= np.radians(STEP_DEG) * 14.1
     assert caliper_dbh(edges, np.array([0.14]), one_sided_spread=None).empty
     cal = caliper_dbh(edges, np.array([0.14]))
-    assert cal["n_scans"].tolist() == [6]
+    assert cal["n_scans"].tolist() == [6] and cal["lone_sides"].tolist() == [False]  # a free centre
     assert abs(cal["caliper_dbh_m"].iat[0] - 2 * r) <= np.radians(STEP_DEG) * 11.0 / 2
     crowded = edges[edges["scan"].isin(["S0", "S1"])]  # two sides 61 deg apart
     assert caliper_dbh(crowded, np.array([0.14]), side_min=0).empty
@@ -127,7 +128,13 @@ def test_sides_that_agree_give_a_radius_where_partial_arcs_shrank_the_cylinders(
         parts.append(e[e["side"] == keep].assign(scan=f"S{i}"))
     edges = pd.concat(parts, ignore_index=True)
     cal = caliper_dbh(edges, np.array([0.10]))
-    assert cal["n_scans"].tolist() == [2]
+    assert cal["n_scans"].tolist() == [2] and cal["lone_sides"].tolist() == [True]
+    # measured from the cylinders' axis: the outline is blended into it as into the cylinders'
+    tp = params()
+    assert outline_refs(cal["tree"], cal, 0.8, tp).tolist() == [tp.outline_ref_cylinders_sd_m]
+    whole = cal.assign(lone_sides=False)
+    assert outline_refs(whole["tree"], whole, 0.8, tp).tolist() == [tp.outline_ref_sd_m]
+    assert outline_refs(whole["tree"], whole, 0.0, tp).tolist() == [tp.outline_ref_cylinders_sd_m]
     support = r + 0.06 * np.sin(half)
     assert abs(cal["caliper_dbh_m"].iat[0] - 2 * support) <= np.radians(STEP_DEG) * 12.0
     assert abs(cal["caliper_dbh_m"].iat[0] - 2 * r) <= 0.025

@@ -64,7 +64,7 @@ if TYPE_CHECKING:
 
 EDGE_COLUMNS = ["tree", "scan", "side", "row", "h_m", "range_m", "quantum_m", "phi"]
 EDGE_COLUMNS_NEEDED = ["row", "col", "range_m", "x", "y", "z"]
-CALIPER_COLUMNS = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans"]
+CALIPER_COLUMNS = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans", "lone_sides"]
 MAX_LOOK_PIXELS = 64
 
 
@@ -157,7 +157,8 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
                 radius_range: tuple[float, float] = (0.5, 2.0), width_sd_m: float = 0.008,
                 one_sided_spread: float | None = 0.5, one_sided_agree: float = 0.25,
                 ellipse_prior: float = 0.04, side_min: int = 2) -> pd.DataFrame:
-    """Each tree's caliper DBH (``tree, caliper_dbh_m, caliper_sd_m, n_scans``) from the
+    """Each tree's caliper DBH (``CALIPER_COLUMNS``; ``lone_sides`` where it is twice the sides'
+    distance from the axis, :func:`_side_radius_dbh`) from the
     silhouette edges of all scans (``EDGE_COLUMNS``; step 3 of the module docstring): the
     scans' widths weighted by their precision (the pixel across at the edge, ``quantum_m``,
     and ``width_sd_m`` for the footprint's model and the section's own widths);
@@ -187,7 +188,7 @@ def caliper_dbh(edges: pd.DataFrame, radius_m: np.ndarray, *, min_rows: int = 2,
     sides = sides[sides["in_range"].to_numpy()]  # single sides: each in range
     # a width's variance: each side's edge uniform within one pixel across, plus width_sd_m
     both["w"] = 1.0 / (both["quantum"] ** 2 / 6.0 + width_sd_m**2)
-    out = width_function(both, ellipse_prior)[CALIPER_COLUMNS]
+    out = width_function(both, ellipse_prior).assign(lone_sides=False)[CALIPER_COLUMNS]
     if one_sided_spread is not None:
         rest = sides[~sides["tree"].isin(out["tree"])]
         extra = _one_sided_dbh(rest, radius_m, one_sided_spread, one_sided_agree, width_sd_m)
@@ -246,7 +247,7 @@ def width_function(widths: pd.DataFrame, ellipse_prior: float) -> pd.DataFrame:
 
 
 def _no_calipers() -> pd.DataFrame:
-    return pd.DataFrame({c: pd.Series(dtype="float64") for c in CALIPER_COLUMNS})
+    return pd.DataFrame({c: pd.Series(dtype="bool" if c == "lone_sides" else "float64") for c in CALIPER_COLUMNS})
 
 
 def _side_weights(sides: pd.DataFrame, width_sd_m: float) -> np.ndarray:
@@ -277,7 +278,8 @@ def _one_sided_dbh(sides: pd.DataFrame, radius_m: np.ndarray, spread: float, agr
         r0 = radius_m[int(t)]
         if abs(a[0] - r0) > agree * r0 or np.hypot(a[1], a[2]) > r0:
             continue
-        rows.append((int(t), 2.0 * a[0], 2.0 * float(np.sqrt(np.linalg.inv(normal)[0, 0])), int(g["scan"].nunique())))
+        rows.append((int(t), 2.0 * a[0], 2.0 * float(np.sqrt(np.linalg.inv(normal)[0, 0])), int(g["scan"].nunique()),
+                     False))
     return pd.DataFrame(rows, columns=CALIPER_COLUMNS)
 
 
@@ -293,7 +295,9 @@ def _side_radius_dbh(sides: pd.DataFrame, radius_m: np.ndarray, side_min: int, a
     edge an occluder cut. Own realistic, the other DBH rules of this session in place (DBH RMSE
     without / with, cm): stored 1-3, 7-13 1.23 / 1.20, bench_dbh seeds 4-6, 14-16 1.65 / 1.32,
     17-22 1.41 / 1.27, 23-28 1.30 / 1.31 (the floor set here), 29-34 1.83 / 1.76
-    (benchmarks/results.md "side_radius")."""
+    (benchmarks/results.md "side_radius"). Such a DBH carries the axis's error across the lines
+    of sight, which sides from one direction cannot show: :func:`tree_dbh` blends the outline
+    into it as into the cylinders' (``outline_ref_cylinders_sd_m``; results.md "lone_sides")."""
     if sides.empty:
         return _no_calipers()
     w = _side_weights(sides, width_sd_m)
@@ -305,7 +309,7 @@ def _side_radius_dbh(sides: pd.DataFrame, radius_m: np.ndarray, side_min: int, a
             & (h >= (1.0 - agree) * radius_m[a.index.to_numpy(int)])).to_numpy()
     return pd.DataFrame({"tree": a.index[keep].to_numpy(int), "caliper_dbh_m": 2.0 * h.to_numpy()[keep],
                          "caliper_sd_m": 2.0 / np.sqrt(a["sw"].to_numpy()[keep]),
-                         "n_scans": a["n_scans"].to_numpy()[keep]})
+                         "n_scans": a["n_scans"].to_numpy()[keep], "lone_sides": True})
 
 
 def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp,
@@ -362,6 +366,16 @@ def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, 
     return out, w
 
 
+def outline_refs(trees: pd.Series, calipers: pd.DataFrame, weight: float, tp) -> np.ndarray:
+    """The error of the DBH so far of ``trees`` (rows), which the outline is blended with:
+    ``tp.outline_ref_sd_m`` where widths took part (``weight`` > 0), else the cylinders' own
+    ``tp.outline_ref_cylinders_sd_m``. Lone sides' distances are measured from the cylinders'
+    axis and share its error (:func:`_side_radius_dbh`), so they count as no width."""
+    whole = calipers["tree"].to_numpy(int)[~calipers["lone_sides"].to_numpy(bool)]
+    widths = np.isin(trees.to_numpy(int), whole) & (weight > 0)
+    return np.where(widths, tp.outline_ref_sd_m, tp.outline_ref_cylinders_sd_m)
+
+
 def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, clouds: Mapping[str, np.ndarray],
              poses: pd.DataFrame, tp, images: Mapping[str, pa.Table] | None = None,
              breast_height_m: float = 1.3) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -391,17 +405,15 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
         fits.loc[rows, col] = calipers[src].to_numpy()
     if weight > 0:
         notes = out["dbh_note"].astype(str).to_numpy(object)
-        for i, k in zip(calipers["tree"].to_numpy(int), calipers["n_scans"].to_numpy(int), strict=True):
+        for i, k, lone in zip(calipers["tree"].to_numpy(int), calipers["n_scans"].to_numpy(int),
+                              calipers["lone_sides"].to_numpy(bool), strict=True):
             if np.isfinite(out["dbh_m"].iat[i]):
-                part = f"{weight:.0%} from the silhouette widths of {k} scan{'s' if k > 1 else ''}"
+                part = f"{weight:.0%} from the silhouette {'sides' if lone else 'widths'} of {k} scan{'s' if k > 1 else ''}"
                 notes[i] = f"{notes[i]}; {part}" if notes[i] else part
         out["dbh_note"] = notes
     if with_outline and len(edges):
         sides = side_table(edges, tp.caliper_min_rows)
         sides = sides.assign(w=tp.outline_side_weight * _side_weights(sides, tp.caliper_width_sd_m))
         outline = outline_dbhs(stems, within_band(slices, stems, tp.outline_half_height_m), sensors, sides, tp)
-        # the DBH so far: the widths' (blended), else the cylinders' alone with their own error
-        widths = np.isin(outline["tree"].to_numpy(int), calipers["tree"].to_numpy(int)) & (weight > 0)
-        ref = np.where(widths, tp.outline_ref_sd_m, tp.outline_ref_cylinders_sd_m)
-        out, fits = blend_outline(out, fits, outline, ref)
+        out, fits = blend_outline(out, fits, outline, outline_refs(outline["tree"], calipers, weight, tp))
     return out, fits
