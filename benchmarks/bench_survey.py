@@ -21,7 +21,8 @@ where each run spends its time (forestmap's stage lines, Sylva's progress lines)
 Options: ``--seeds N|a,b`` Sylva surveys (default 3), ``--own-seeds`` own-simulator surveys
 (default 1, 0 for none), ``--real-seeds`` own surveys with realistic stems (default 0),
 ``--render-seeds`` rendered surveys (default 1), ``--colour-render-seeds`` rendered from a colourised
-cloud (default 0), ``--scans`` (6), ``--skip-peer`` (no Sylva: own simulator and forestmap
+cloud (default 0), ``--ghost-render-seeds`` rendered from a cloud with mixed-pixel ghost points
+(default 0), ``--scans`` (6), ``--skip-peer`` (no Sylva: own simulator and forestmap
 only; also what happens, with the error in the section, when Sylva cannot be installed or
 imported), ``--cache DIR`` (keep campaigns, logs and stores; simulated campaigns are reused),
 ``--report-only`` (rebuild the tables from ``--cache``), ``--no-write``.
@@ -367,18 +368,19 @@ def make_campaign(kind: str, seed: int, args, cache: Path, peer_py: Path | None)
         write_sylva_campaign(root, truth, tilted=kind == "sylvatilt")
         facts = {"points": truth["n_points"], "stem_check_m": truth["stem_check_m"],
                  "source": f"sylva-rs {truth['sylva_rs']}"}
-    elif kind in ("render", "rendercolour"):
+    elif kind in ("render", "rendercolour", "renderghost"):
         import time as _t
 
         from forestmap_assets.sim.cloud_render import render_campaign
 
         t0 = _t.perf_counter()
         render_campaign(root, seed=seed, scans=args.scans, colour=kind == "rendercolour",
+                        source_kwargs={"mixed_range": "blend"} if kind == "renderghost" else None,
                         progress=lambda msg: print(f"    {msg}", flush=True))
         m = {"wall_s": _t.perf_counter() - t0}
         facts = {"points": [ply_vertices(p) for p in sorted((root / "scans").glob("*.ply"))],
                  "source": "forestmap sim/cloud_render.py (realistic stems, 9 source scans"
-                           + (", colourised)" if kind == "rendercolour" else ")")}
+                           + {"rendercolour": ", colourised)", "renderghost": ", mixed-pixel ghosts)"}.get(kind, ")")}
     else:
         stems = ["--stems", "realistic"] if kind == "ownreal" else []
         m = run_measured([forestmap_exe(), "simulate", root, "--scans", args.scans, "--resolution",
@@ -667,7 +669,7 @@ def _ratio(a, b):
 
 def case_name(c: dict) -> str:
     label = {"sylva": "Sylva sim", "sylvatilt": "Sylva unlevelled", "render": "rendered",
-             "rendercolour": "rendered, colour",
+             "rendercolour": "rendered, colour", "renderghost": "rendered, ghosts",
              "ownreal": "own realistic"}.get(c["kind"], "own sim")
     return f"{label} {c['seed']}"
 
@@ -903,6 +905,9 @@ def main(argv=None) -> int:
                     help="own-simulator surveys with realistic stems (--stems realistic), same form (0: none)")
     ap.add_argument("--colour-render-seeds", default="0",
                     help="as --render-seeds, the cloud colourised and the scans with its RGB (0: none)")
+    ap.add_argument("--ghost-render-seeds", default="0",
+                    help="as --render-seeds, the source scanner's mixed pixels echo both surfaces "
+                         "(ghost points trailing the trunks' silhouettes, as real TLS clouds have; 0: none)")
     ap.add_argument("--render-seeds", default="1",
                     help="surveys rendered inside the registered cloud of an own realistic forest "
                          "(sim/cloud_render.py), same form (0: none)")
@@ -933,6 +938,7 @@ def main(argv=None) -> int:
     plan += [("ownreal", s) for s in (seeds_of(args.real_seeds) if args.real_seeds != "0" else [])]
     plan += [("render", s) for s in (seeds_of(args.render_seeds) if args.render_seeds != "0" else [])]
     plan += [("rendercolour", s) for s in (seeds_of(args.colour_render_seeds) if args.colour_render_seeds != "0" else [])]
+    plan += [("renderghost", s) for s in (seeds_of(args.ghost_render_seeds) if args.ghost_render_seeds != "0" else [])]
     cases = []
     for kind, seed in plan:
         rundir = cache / "runs" / f"{kind}-seed{seed}"

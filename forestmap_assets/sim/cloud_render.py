@@ -113,19 +113,20 @@ def write_ply_xyz(path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> None:
 
 def registered_cloud(world, positions: np.ndarray, *, seed: int = 0, n_cols: int = 6000,
                      n_rows: int = 1440, range_sigma_m: float = 0.003, voxel_m: float = 0.01,
-                     scanner_height_m: float = 1.5, colour: bool = False,
+                     scanner_height_m: float = 1.5, colour: bool = False, mixed_range: str = "first",
                      progress=None) -> tuple[np.ndarray, np.ndarray | None]:
     """The "registered TLS cloud" of ``world`` (a :class:`~.forest.Forest`): scans from
     ``positions`` (n, 2) with a survey-grade scanner (a finer grid than the thesis's, 3 mm range
     noise, a 0.3 mrad beam leaving a 5 mm exit; inferred) merged in the world frame and thinned
     to one point per ``voxel_m`` voxel, as such clouds are shared: its points (n, 3) and, with
-    ``colour``, their 8-bit RGB (n, 3) as a colourised cloud has (``sim/colour.py``; else None)."""
+    ``colour``, their 8-bit RGB (n, 3) as a colourised cloud has (``sim/colour.py``; else None);
+    ``mixed_range`` the source scanner's mixed pixels (``"blend"``: ghost points behind edges)."""
     from forestmap_assets.core.cloud import voxel_subsample
     from forestmap_assets.sim.scanner import ScanPose, VirtualScanner
 
     scanner = VirtualScanner(world, resolution="full", n_cols=n_cols, n_rows=n_rows,
                              range_sigma_m=range_sigma_m, beam_exit_m=0.005, divergence_mrad=0.3,
-                             intensity=False, colour=colour)
+                             intensity=False, colour=colour, mixed_range=mixed_range)
     rng = np.random.default_rng(seed)
     ground = world.ground.height(positions[:, 0], positions[:, 1])
     parts, colours = [], []

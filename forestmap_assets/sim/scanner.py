@@ -116,6 +116,10 @@ class VirtualScanner:
     replaces them and the field of view by ``FINE_GRID``). ``colour`` (True,
     or a :class:`~forestmap_assets.sim.colour.ColourModel`) adds 8-bit RGB per pixel from the
     surface's world-fixed albedo under the scan's own light (men spec 2.3; ``sim/colour.py``).
+    ``mixed_range``: a mixed pixel returns the nearer surface (``"first"``, a first-return
+    pulse scanner) or a range drawn uniformly between the two surfaces (``"blend"``: the one
+    echo of both that phase and many pulse scanners report, the "ghost" points that trail
+    trunks' silhouettes in real TLS clouds; inferred).
     """
 
     def __init__(
@@ -139,7 +143,10 @@ class VirtualScanner:
         chunk_rays: int = 1_000_000,
         mix_min_step_m: float = 0.05,
         colour=False,
+        mixed_range: str = "first",
     ) -> None:
+        if mixed_range not in ("first", "blend"):
+            raise ValueError(f"mixed_range: {mixed_range!r} is not 'first' or 'blend'")
         if resolution not in RESOLUTION_DIVISOR:
             raise ValueError(f"resolution: {resolution!r} is not one of {list(RESOLUTION_DIVISOR)}")
         self.mesh = getattr(target, "mesh", target)
@@ -165,6 +172,7 @@ class VirtualScanner:
         self.intensity = intensity
         self.chunk_rays = chunk_rays
         self.mix_min_step_m = mix_min_step_m
+        self.mixed_range = mixed_range
         self._dirs: np.ndarray | None = None
         if colour is True:
             from forestmap_assets.sim.colour import ColourModel
@@ -297,9 +305,14 @@ class VirtualScanner:
         sr, sp = sr.reshape(-1, k), sp.reshape(-1, k)
         j = np.argmin(sr, axis=1)
         sub_best = sr[np.arange(cand.size), j]
-        closer = sub_best < best_r[cand] - self.mix_min_step_m
+        far = best_r[cand]
+        closer = sub_best < far - self.mix_min_step_m
         sel = cand[closer]
         best_r[sel] = sub_best[closer]
+        if self.mixed_range == "blend":  # an echo of both surfaces: a range between them
+            both = closer & np.isfinite(far)
+            w = rng.random(int(both.sum()), dtype=np.float32)
+            best_r[cand[both]] = sub_best[both] + w * (far[both] - sub_best[both])
         best_prim[sel] = sp[np.flatnonzero(closer), j[closer]]
         mixed[sel] = True
         return int(st.size)

@@ -294,6 +294,11 @@ def test_beam_footprint_widens_thin_objects():
             assert res.mixed.sum() >= 2 * 20
             assert (res.image.range_m[res.mixed] < 5.0).all()
         wall = res.kind == 0
+        if k:  # a blended echo: ghost points between the pole's edge and the wall
+            ghost = VirtualScanner(mesh, sub_rays=k, mixed_range="blend", **geo).scan(pose, seed=1)
+            r = ghost.image.range_m[ghost.mixed]
+            assert ghost.mixed.sum() == res.mixed.sum() and (r > 4.85).all() and (r < 15.6).all()
+            assert np.mean(r > 6.0) > 0.5  # most well behind the pole's front
         assert np.allclose(res.image.range_m[wall] * np.cos(az)[None].repeat(20, 0)[wall]
                            * np.cos(np.radians(res.image.elevation_deg))[:, None]
                            .repeat(50, 1)[wall], 15.0, atol=1e-3)
