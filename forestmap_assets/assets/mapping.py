@@ -265,6 +265,7 @@ def mapping_assets(campaign: Campaign) -> list:
         trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid,
                                          **beam_options(tp.beam_exit_m, 1e-3 * tp.beam_divergence_mrad))
         from_slice = from_calipers = from_outline = 0
+        widening = None
         if by_slice:
             from forestmap_assets.core.mapping.stem_calipers import tree_dbh
             from forestmap_assets.core.mapping.stem_slices import slice_clouds
@@ -275,11 +276,14 @@ def mapping_assets(campaign: Campaign) -> list:
             from_calipers = int((fits["caliper_scans"] > 0).sum()) if tp.calipers else 0
             from_outline = int(fits["outline_dbh_m"].notna().sum()) if "outline_dbh_m" in fits else 0
             from_slice = int((fits["reason"] == "").sum())
+            if "caliper_widening_m" in fits and len(fits):
+                widening = round(float(fits["caliper_widening_m"].iat[0]), 4)
         dbh = trees["dbh_m"].dropna()
         noted = trees["dbh_note"].astype(bool)
         meta = {"trees": len(trees), "with_dbh": int(len(dbh)), "dbh_from_slice": from_slice,
                 "dbh_with_silhouette_widths": from_calipers, "dbh_with_outline": from_outline,
                 "dbh_with_note": int((noted & trees["dbh_m"].notna()).sum()),
+                **({} if widening is None else {"silhouette_widening_m": widening}),
                 "median_dbh_m": round(float(dbh.median()), 3) if len(dbh) else 0.0,
                 "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum()),
                 "dbh_histogram": png_metadata(dbh_histogram(trees, title=f"{campaign.name}: DBH of {len(dbh)} trees"))}

@@ -380,7 +380,7 @@ def load_campaign(folder: str | Path) -> Campaign:
         raise _fail(where, "params: expected a mapping of stage -> {key: value}")
     # the search box and the beam are defaults of their stages' sections; params win
     # a named beam also gives the silhouettes' widths to the DBH (core/mapping/stem_calipers.py)
-    trees_beam = {**beam, "calipers": True} if beam else {}
+    trees_beam = {**beam, "calipers": True, "caliper_widening": "beam"} if beam else {}
     for section, values in (("registration", search or {}), ("refine", beam), ("trees", trees_beam)):
         if values:
             overrides = {**overrides, section: {**values, **(overrides.get(section) or {})}}

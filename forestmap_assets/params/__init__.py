@@ -285,25 +285,25 @@ class TreeParams(_Stage):
     """Tree list: DBH source (forestmap's step beyond the thesis; core/mapping/trees.py,
     core/mapping/stem_slices.py; all values inferred, issue 19)."""
 
-    # slice: outline of the merged registered points at breast height; cylinders: twice the
-    # weighted cylinder radius at 1.3 m (the DBH before issue 19, and the fallback of a slice)
+    # slice: merged points' outline at 1.3 m; cylinders: twice their radius there (the fallback)
     dbh_method: Literal["slice", "cylinders"] = "slice"
     slice_half_height_m: float = 0.1  # slice 1.2-1.4 m above the ground under the stem
     slice_gate_factor: float = 1.5  # points within 1.5 x the cylinder radius + margin of the axis
     slice_gate_margin_m: float = 0.05
     slice_max_incidence_deg: float = 65.0  # grazing points left out
-    # and those within 1.5 beam footprint radii of a scan's silhouette edge: mixed pixels
-    # overhang the stem by up to a footprint (+3 cm in simulation), grazing bark reads high
+    # and those within 1.5 footprint radii of a silhouette edge (mixed pixels; grazing bark reads high)
     slice_edge_footprints: float = 1.5
     # footprint diameter beam_exit_m + beam_divergence_mrad x range, from campaign.yaml's sensor
     # (own simulator: spec 1.1's 42 mm + 3 mrad); else a survey-grade TLS beam
     beam_exit_m: float = 0.005
     beam_divergence_mrad: float = 0.3
-    # DBH blended with the silhouettes' widths (core/mapping/stem_calipers.py): they need the
-    # beam's footprint, so campaign.yaml's sensor section turns them on when it names the beam
+    # DBH blended with the silhouettes' widths (core/mapping/stem_calipers.py) less the beam's footprint
+    # (campaign.yaml's sensor: on); "campaign": less their widening beyond it (campaign_widening)
     calipers: bool = False
-    # blend weight s^2 / (s^2 + ref^2): s the points' scatter about the outlines, ref this factor
-    # x the median sd of the trees' caliper DBH (their pixels' size and caliper_width_sd_m)
+    caliper_widening: Literal["beam", "campaign"] = "beam"
+    caliper_widening_min_trees: int = 5
+    # blend weight s^2 / (s^2 + ref^2): s the points' scatter about the outlines, ref this x the
+    # median sd of the trees' caliper DBH (their pixels' size and caliper_width_sd_m)
     caliper_sd_factor: float = 1.0
     caliper_half_height_m: float = 0.6  # silhouettes from 1.3 m -/+ this (more lines dither an edge)
     caliper_min_rows: int = 2  # scan lines a silhouette side needs
@@ -433,6 +433,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # (inferred) colour scans refined both ways too: HICP took 13 s a pair and placed scans
         # worse (own realistic with colour, 70-72; results.md "colour_refine")
         "refine": {"method": "point_to_plane"},
+        # (inferred) no named beam: DBH RMSE renders 1.75 -> 1.03, Sylva 0.53 -> 0.51 (results.md "widening")
+        "trees": {"calipers": True, "caliper_widening": "campaign"},
     },
     "outdoor": {
         "circles": {"symmetry_threshold_m": 0.0041},

@@ -35,14 +35,14 @@ def test_pairs_search_params_and_sensor(tmp_path):
     # and the silhouette edges the DBH slice leaves out
     assert c.params.trees.beam_divergence_mrad == 0.35 and c.params.trees.beam_exit_m == pytest.approx(0.0035)
     # a named beam gives the DBH the silhouettes' widths (core/mapping/stem_calipers.py)
-    assert c.params.trees.calipers
+    assert c.params.trees.calipers and c.params.trees.caliper_widening == "beam"
     c = load_campaign(write_campaign(tmp_path / "q", extra="sensor: {beam_divergence_mrad: 3}\n"
                                      "params:\n  refine: {beam_divergence_mrad: 1.0}\n  trees: {calipers: false}\n"))
     assert c.params.refine.beam_divergence_mrad == 1.0 and c.params.refine.beam_exit_m == 0.0
     assert not c.params.trees.calipers
-    # a sensor section without the beam leaves them off
+    # without the beam a forest takes the widths less their widening, from its own trees
     c = load_campaign(write_campaign(tmp_path / "r", extra="sensor: {angular_step_deg: 0.1}\n"))
-    assert not c.params.trees.calipers
+    assert c.params.trees.calipers and c.params.trees.caliper_widening == "campaign"
 
 
 @pytest.mark.parametrize(

@@ -11,6 +11,7 @@ import pytest
 from forestmap_assets.core.mapping.stem_calipers import (
     blend_calipers,
     caliper_dbh,
+    campaign_widening,
     outline_refs,
     silhouette_edges,
     tree_calipers,
@@ -272,3 +273,31 @@ def test_a_width_is_judged_whole_when_the_axis_is_off_across_the_line_of_sight()
     assert abs(cal["caliper_dbh_m"].iat[0] - 2 * r) <= np.radians(STEP_DEG) * 10.0
     assert caliper_dbh(e, np.array([0.35])).empty  # half the width under half this radius
 
+
+
+def test_campaign_widening_from_the_trees_with_a_slice():
+    """Where the campaign names no beam, the silhouettes' widening is the median of caliper less
+    slice DBH over the trees with both: a constant (a renderer's splat), or growing with range
+    (a beam's divergence; robust slope, never negative); lone sides and too few trees give none."""
+    rng = np.random.default_rng(3)
+    n = 14
+    r = np.linspace(5.0, 30.0, n)
+    slice_dbh = rng.uniform(0.15, 0.40, n)
+
+    def calipers(excess, lone=None):
+        return pd.DataFrame({"tree": np.arange(n), "caliper_dbh_m": slice_dbh + excess, "caliper_sd_m": 0.01,
+                             "n_scans": 2, "lone_sides": np.zeros(n, bool) if lone is None else lone})
+
+    a, b = campaign_widening(calipers(0.012 + 0.0008 * r), slice_dbh, r, 5)
+    assert a == pytest.approx(0.012, abs=1e-6) and b == pytest.approx(0.0008, abs=1e-7)
+    noisy = 0.02 + rng.normal(0, 0.002, n)
+    noisy[[2, 9]] += 0.08  # two trees whose slices are far off
+    a, b = campaign_widening(calipers(noisy), slice_dbh, r, 5)
+    assert abs(a + b * 17.5 - 0.02) < 0.004 and b < 0.0005
+    assert campaign_widening(calipers(0.03 - 0.0005 * r), slice_dbh, r, 5)[1] == 0.0  # shrinking: a constant
+    gaps = slice_dbh.copy()
+    gaps[4:] = np.nan  # four trees with a slice
+    assert campaign_widening(calipers(0.02), gaps, r, 5) == (0.0, 0.0)
+    assert campaign_widening(calipers(0.02, lone=np.arange(n) >= 4), slice_dbh, r, 5) == (0.0, 0.0)
+    a, b = campaign_widening(calipers(0.02), gaps, r, 4)  # too few trees for a slope
+    assert a == pytest.approx(0.02) and b == 0.0
