@@ -45,7 +45,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
-from scipy.stats import theilslopes
 
 from forestmap_assets.core.geometry import rot_z, transform_points
 from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_dbhs
@@ -382,7 +381,10 @@ def campaign_widening(calipers: pd.DataFrame, slice_dbh_m: np.ndarray, range_m: 
         return 0.0, 0.0
     d, r = whole["caliper_dbh_m"].to_numpy(float)[ok] - ref[ok], r[ok]
     if ok.sum() >= 2 * min_trees and np.ptp(r) > 5.0:  # robust: a few trees' slices are off
-        slope = max(float(theilslopes(d, r)[0]), 0.0)  # a footprint grows with range, or not
+        i, j = np.triu_indices(len(r), 1)  # Theil-Sen: the median of the pairs' slopes
+        apart = np.abs(r[j] - r[i]) > 1e-9
+        slope = float(np.median((d[j] - d[i])[apart] / (r[j] - r[i])[apart]))
+        slope = max(slope, 0.0)  # a footprint grows with range, or not
         return float(np.median(d - slope * r)), slope
     return float(np.median(d)), 0.0
 
