@@ -308,11 +308,13 @@ class VirtualScanner:
         far = best_r[cand]
         closer = sub_best < far - self.mix_min_step_m
         sel = cand[closer]
-        best_r[sel] = sub_best[closer]
+        near = sub_best[closer]
         if self.mixed_range == "blend":  # an echo of both surfaces: a range between them
-            both = closer & np.isfinite(far)
+            behind = far[closer]
+            both = np.isfinite(behind)
             w = rng.random(int(both.sum()), dtype=np.float32)
-            best_r[cand[both]] = sub_best[both] + w * (far[both] - sub_best[both])
+            near[both] += w * (behind[both] - near[both])
+        best_r[sel] = near
         best_prim[sel] = sp[np.flatnonzero(closer), j[closer]]
         mixed[sel] = True
         return int(st.size)
