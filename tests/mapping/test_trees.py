@@ -128,6 +128,13 @@ def _one_stem_from(ranges_and_radii, n=50):
     return cylinders_to_global(per_scan, poses)
 
 
+def _scans_cylinders(seen):
+    """One cylinder a scan of one vertical stem at (0, 0): {scan: (range, r0, r1, z0, z1, n)}."""
+    per_scan = {sid: pd.DataFrame([_cyl(0, (rng, 0.0, 0.0), (0.0, 0.0), r0, r1, z0, z1, n=n)])
+                for sid, (rng, r0, r1, z0, z1, n) in seen.items()}
+    return cylinders_to_global(per_scan, {sid: (-v[0], 0.0, 0.0, 0.0) for sid, v in seen.items()})
+
+
 def test_dbh_prefers_near_observations_and_weights_by_beam_footprint():
     grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
     # near scans see r = 0.150, far scans (wide footprint, mixed pixels) r = 0.175
@@ -198,7 +205,7 @@ def test_a_lone_near_cylinder_far_too_small_gives_way_to_agreeing_ones():
     w = 50 / (0.042 + 0.003 * np.array([22.9, 25.4, 25.5])) ** 2
     assert trees["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.170, 0.170, 0.177], weights=w))
     assert "the one nearest gave 12.6 cm" in trees["dbh_note"].iloc[0]
-    old, _ = merge_trees(cyl, grid, lone_ratio=None)
+    old, _ = merge_trees(cyl, grid, lone_ratio=None, lone_one_scan_ratio=None)
     assert old["dbh_m"].iloc[0] == pytest.approx(0.126)
     split, _ = merge_trees(_one_stem_from([(17.0, 0.063), (22.9, 0.10), (25.4, 0.17)]), grid)
     assert 0.2 <= split["dbh_m"].iloc[0] <= 0.34
@@ -227,8 +234,38 @@ def test_the_cylinders_of_one_scan_too_small_give_way_like_a_lone_one():
     assert trees["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.112, 0.139, 0.141], weights=w))
     assert "cylinders within 2 m of breast height" in trees["dbh_note"].iloc[0]
     # 0.139 and 0.141 lie 24-26 % above 0.112, and 0.112 is under twice the near scan's radius
-    strict, _ = merge_trees(cyl, grid, lone_agree=0.2, lone_ratio=2.0)
+    strict, _ = merge_trees(cyl, grid, lone_agree=0.2, lone_ratio=2.0, lone_one_scan_ratio=None)
     assert strict["dbh_m"].iloc[0] == pytest.approx(0.12)  # the near scan's two cylinders decide
+
+
+def test_one_other_scan_far_thicker_gives_the_dbh():
+    """Held-out own realistic seed 72: a 22 cm stem read 11.6 cm from one scan's cylinder 16 m
+    away (understorey hid the stem at breast height), where the one other scan near breast
+    height, 23 m away, read 21.8 cm. It decides when it reads 1.6 times the radius or more."""
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    cyl = _scans_cylinders({"N": (15.8, 0.058, 0.058, 1.2, 1.7, 16), "T": (23.2, 0.109, 0.109, 2.7, 3.5, 20)})
+    trees, _ = merge_trees(cyl, grid)
+    assert trees["dbh_m"].iloc[0] == pytest.approx(0.218)
+    assert "1 cylinders of other scans" in trees["dbh_note"].iloc[0]
+    assert merge_trees(cyl, grid, lone_one_scan_ratio=None)[0]["dbh_m"].iloc[0] == pytest.approx(0.116)
+    assert merge_trees(cyl, grid, lone_one_scan_ratio=2.0)[0]["dbh_m"].iloc[0] == pytest.approx(0.116)
+
+
+def test_near_scans_just_beyond_reach_outrank_far_ones_at_breast_height():
+    """Held-out seed 67: a 32 cm stem read 22 cm from cylinders seen 26 m away spanning breast
+    height, where a scan 13 m away read 32 cm from 1.04 m above it. Within 1.5 m, near scans'
+    cones (extrapolated) give the DBH when no near one reaches within 1 m."""
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    cyl = _scans_cylinders({"R": (25.6, 0.109, 0.063, 0.2, 3.1, 51), "N": (12.7, 0.159, 0.157, 2.34, 3.4, 47)})
+    trees, _ = merge_trees(cyl, grid)
+    slope = (0.157 - 0.159) / (3.4 - 2.34)  # the stem thickening downwards, within 1 cm/m
+    assert trees["dbh_m"].iloc[0] == pytest.approx(2 * (0.158 + slope * (1.3 - 2.87)))
+    assert trees["dbh_note"].iloc[0].startswith("the cylinders within 1 m of breast height seen only from 26 m")
+    alone = {"lone_one_scan_ratio": None}  # which would also let the near scan decide here
+    far, _ = merge_trees(cyl, grid, dbh_close_reach_m=None, **alone)
+    assert far["dbh_m"].iloc[0] < 0.2  # the far cylinder's tapering cone
+    beyond, _ = merge_trees(cyl, grid, dbh_close_reach_m=1.0, **alone)
+    assert beyond["dbh_m"].iloc[0] == pytest.approx(far["dbh_m"].iloc[0])
 
 
 def test_a_near_scans_heavy_small_cylinders_do_not_set_the_median_alone():
