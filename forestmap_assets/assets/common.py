@@ -59,7 +59,7 @@ STAGE_PARAMS: dict[str, tuple[str, ...]] = {
     "pairwise_registrations": ("registration", "elevation"),
     "refined_registrations": ("refine",),
     "retry_pairs": ("registration",),
-    "optimal_map": ("mapping",),
+    "optimal_map": ("mapping", "refine"),  # refine: the beam (objective_scale.scale_floor)
     "residual_checks": ("mapping",),
     "scan_tilts": ("mapping",),
     "integrated_map": ("elevation",),

@@ -61,6 +61,7 @@ def mapping_assets(campaign: Campaign) -> list:
     from forestmap_assets.core.mapping.link_selection import select_links
     from forestmap_assets.core.mapping.objective_scale import (
         objective_scale,
+        scale_floor,
         scale_sd,
         take_out,
         widen_links,
@@ -124,7 +125,10 @@ def mapping_assets(campaign: Campaign) -> list:
             links = sel.links
             residuals = sel.solution.residuals
         factors = variance_factors(residuals, int(poses["registered"].sum()), mp.variance_factor_min_dof)
-        poses = scale_sd(with_variance_factors(poses, factors), sigma_scale, mp.scale_sd_floor)
+        rp = params.refine
+        floor = scale_floor(mp.scale_sd_floor, mp.wide_beam_scale_sd_floor, rp.beam_divergence_mrad,
+                            rp.symmetric_max_divergence_mrad)
+        poses = scale_sd(with_variance_factors(poses, factors), sigma_scale, floor)
         bundle = {"poses": poses, "links": links, "residuals": residuals}
         meta = {
             "objective_scale_mm_per_m": round(1000 * scale, 4),

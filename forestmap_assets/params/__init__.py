@@ -263,14 +263,16 @@ class MappingParams(_Stage):
     max_iterations: int = 50
     check_new_link: bool = True
     chain_link_choice: Literal["latest", "smallest_sigma"] = "latest"
-    # network scale when the objectives' difference per metre is this many se (objective_scale);
-    # from correct_t se it is taken out of the refined links instead (objective_scale.take_out)
+    # network scale from the objectives' difference per metre of this many se; from correct_t se
+    # taken out of the refined links (objective_scale.take_out)
     objective_scale_t: float = 3.0
     objective_scale_correct_t: float = float("inf")
-    scale_sd_floor: float = 0.0  # a scale no link shows, as a sigma only (per metre; objective_scale)
+    # a scale no link shows, as a sigma only (per metre; objective_scale); the other where the
+    # campaign's beam is wide (refine: beam_divergence_mrad > symmetric_max_divergence_mrad)
+    scale_sd_floor: float = 0.0
+    wide_beam_scale_sd_floor: float = 0.0
     variance_factor_min_dof: int = 0  # sigmas x root of the variance factor > 1 from this many redundant links
-    # correlation (x, y, z, heading) of links sharing a scan, pose sigmas only (0: the thesis;
-    # optimal_map.shared_scan_covariance): branch-and-bound links, refined links
+    # x, y, z, heading correlation of (b&b, refined) links sharing a scan (0: the thesis; sigmas)
     scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     refined_scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     # scans levelled from shared stems (core/mapping/levelling) at a tilt this large and this many sd;
@@ -414,19 +416,16 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # segment): circle models on scans rendered inside a registered cloud 7.2 / 4.7 -> 4.9 /
         # 3.7 s a scan, the same poses and DBH (benchmarks/results.md "fit_points")
         "circles": {"symmetry_statistic": "noise_corrected", "max_fit_points": 256},
-        # (inferred) links sharing a scan share its feature errors (results.md "Whole pipeline");
-        # refined links' z 0.1 -> 0.4 -> 0.2, heading 0.15 -> 0.03 -> 0.08 -> 0.25: scans' heading
-        # error / sd, own realistic 55-82 1.29 (86 % within 2 sd) -> 1.14 (90 %), Sylva 44-61 0.96
-        # -> 0.79, rendered 1.04 -> 0.88, circular 0.81 -> 0.71 (results.md "heading_correlation")
-        # z_residual_sigmas 8 -> 5: with the ground-like cells the ground dz's sd holds (pairs'
-        # error / sd 0.73; results.md "ground_cells"). scale_sd_floor 0.08 mm/m: Sylva's networks
-        # had scales of 0.06 mm/m RMS over 20 surveys, up to 0.15, which the objectives did not
-        # show (results.md "scale_floor"). Variance factor: Sylva 36's loops closed 1.3 / 1.7 x
-        # worse. objective_scale_correct_t: renders' xy errors, median 0.36 -> 0.10 cm
-        # (results.md "scale_taken_out")
-        "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05),
-                    "refined_scan_correlation": (0.1, 0.1, 0.2, 0.25), "z_residual_sigmas": 5.0,
-                    "scale_sd_floor": 8e-5, "variance_factor_min_dof": 3, "objective_scale_correct_t": 6.0},
+        # (inferred) links sharing a scan share its feature errors; refined links' heading 0.08 ->
+        # 0.25: scans' heading error / sd own realistic 55-82 1.29 -> 1.14, Sylva 0.96 -> 0.79,
+        # rendered 1.04 -> 0.88 (results.md "heading_correlation"). z_residual_sigmas 5 (results.md
+        # "ground_cells"). Scale floors: Sylva's networks 0.06 mm/m RMS (results.md "scale_floor"),
+        # the own simulator's 3 mrad beam's -0.2 / +0.17 mm/m on realistic / circular stems
+        # (results.md "wide_beam_scale"). Variance factor: Sylva 36's loops 1.3 / 1.7 x worse.
+        # objective_scale_correct_t: renders' xy errors, median 0.36 -> 0.10 cm ("scale_taken_out")
+        "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05), "z_residual_sigmas": 5.0,
+                    "refined_scan_correlation": (0.1, 0.1, 0.2, 0.25), "objective_scale_correct_t": 6.0,
+                    "scale_sd_floor": 8e-5, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         "registration": {"stem_polish": True},

@@ -7,6 +7,7 @@ import pandas as pd
 
 from forestmap_assets.core.mapping.objective_scale import (
     objective_scale,
+    scale_floor,
     scale_sd,
     shorten_links,
     take_out,
@@ -57,6 +58,15 @@ def test_links_and_scans_take_the_scale_along_their_baselines():
     np.testing.assert_allclose(floored["sd_x"], [0.0, np.hypot(0.002, 0.00096)])
     np.testing.assert_allclose(scale_sd(poses, -0.0004, floor=0.00008)["sd_x"], out["sd_x"])
     assert scale_sd(poses, 0.0) is poses
+
+
+def test_a_wide_beam_takes_the_wider_scale_floor():
+    """The own simulator's 3 mrad beam: networks 0.16-0.24 mm/m short or 0.17 mm/m long that no
+    link shows; a campaign with no named beam (Sylva's, rendered) keeps the plain floor."""
+    assert scale_floor(8e-5, 2e-4, 3.0, 1.0) == 2e-4
+    assert scale_floor(8e-5, 2e-4, 0.0, 1.0) == 8e-5
+    assert scale_floor(8e-5, 2e-4, 1.0, 1.0) == 8e-5  # the symmetric objective's limit, not wide
+    assert scale_floor(3e-4, 2e-4, 3.0, 1.0) == 3e-4
 
 
 def test_a_clear_scale_is_taken_out_of_the_refined_links():

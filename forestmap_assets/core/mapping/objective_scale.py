@@ -95,6 +95,16 @@ def widen_links(links: pd.DataFrame, scale: float) -> pd.DataFrame:
     return out
 
 
+def scale_floor(floor: float, wide_beam_floor: float, beam_divergence_mrad: float, wide_above_mrad: float) -> float:
+    """The network scale sigma no link shows (per metre, :func:`scale_sd`'s ``floor``): ``floor``,
+    or ``wide_beam_floor`` where the campaign's beam diverges by more than ``wide_above_mrad``
+    (inferred, issue 19). A wide first-return beam moves each scan's surfaces by part of its
+    footprint, differently from each side, and a network of such links comes out contracted or
+    stretched: the own simulator's 42 mm + 3 mrad beam, 6-scan surveys, -0.16 to -0.24 mm/m
+    on realistic stems and +0.17 mm/m on circular ones (benchmarks/results.md "wide_beam_scale")."""
+    return max(floor, wide_beam_floor) if beam_divergence_mrad > wide_above_mrad else floor
+
+
 def scale_sd(poses: pd.DataFrame, scale: float, floor: float = 0.0) -> pd.DataFrame:
     """``poses`` (the reference at the origin) with the x, y sigma of a network scale
     ``scale`` about the reference added in quadrature: ``|scale x|``, ``|scale y|``; at least
