@@ -249,6 +249,10 @@ def test_one_other_scan_far_thicker_gives_the_dbh():
     assert "1 cylinders of other scans" in trees["dbh_note"].iloc[0]
     assert merge_trees(cyl, grid, lone_one_scan_ratio=None)[0]["dbh_m"].iloc[0] == pytest.approx(0.116)
     assert merge_trees(cyl, grid, lone_one_scan_ratio=2.0)[0]["dbh_m"].iloc[0] == pytest.approx(0.116)
+    # the other scan's cylinder 2.3 m above breast height: within the rule's 2.5 m, not 2.0 m
+    high = _scans_cylinders({"N": (15.8, 0.058, 0.058, 1.2, 1.7, 16), "T": (23.2, 0.109, 0.109, 3.6, 4.4, 20)})
+    assert merge_trees(high, grid)[0]["dbh_m"].iloc[0] == pytest.approx(0.218)
+    assert merge_trees(high, grid, lone_one_scan_reach_m=2.0)[0]["dbh_m"].iloc[0] == pytest.approx(0.116)
 
 
 def test_near_scans_just_beyond_reach_outrank_far_ones_at_breast_height():

@@ -173,6 +173,7 @@ def merge_trees(
     lone_ratio: float | None = 1.4,
     lone_agree: float = 0.3,
     lone_one_scan_ratio: float | None = 1.6,
+    lone_one_scan_reach_m: float = 2.5,
     dbh_close_reach_m: float | None = 1.5,
     small_share: float | None = 0.7,
 ) -> tuple[pd.DataFrame, np.ndarray]:
@@ -265,13 +266,15 @@ def merge_trees(
     surveys unchanged (benchmarks/results.md "side_radius").
 
     Only one other scan (inferred, issue 19): when one scan alone gives the DBH and the
-    cylinders of other scans within ``dbh_extrapolate_m`` of breast height all read
+    cylinders of other scans within ``lone_one_scan_reach_m`` (2.5 m) of breast height all read
     ``lone_one_scan_ratio`` (1.6, stricter than the two-scan rule's 1.4) times its radius or
-    more, they give the DBH. Held-out own realistic seeds 71 and 72: 21-22 cm stems read 12-14
+    more, they give the DBH (their cones extrapolated, taper limited as above). Held-out own realistic seeds 71 and 72: 21-22 cm stems read 12-14
     cm from one scan's cylinders 16 m away (the near arc of a stem hidden by understorey),
     where one other scan read 22-26 cm; DBH RMSE over seeds 65-74 1.19 -> 1.01 cm, the 54
     stored own realistic surveys 1.006 -> 0.995 (one tree), Sylva, rendered and circular
-    unchanged (results.md "one_other_scan").
+    unchanged (results.md "one_other_scan"). Reach 2.0 -> 2.5 m: PLY seed 84, a 24.7 cm stem
+    read 13.1 cm (partial arcs from 12.5 m) where the other scan began 2.03 m above breast
+    height reading 27 cm; PLY seeds 83-90 1.21 -> 1.03 cm, nothing else changed by > 0.6 cm.
 
     Near breast height but only far (inferred, issue 19): when every cylinder within
     ``dbh_reach_m`` was seen from beyond ``dbh_max_range_m`` and cylinders within
@@ -367,12 +370,12 @@ def merge_trees(
                     dbh = 2.0 * weighted_stat(r_o[agree], dbh_weights[m][others][agree], dbh_statistic)
             if lone_one_scan_ratio is not None and not lone and one_scan and "scan" in sub:
                 scans = sub["scan"].to_numpy()
-                foreign = (gap <= dbh_extrapolate_m) & ~np.isin(scans, scans[pick])
+                foreign = (gap <= lone_one_scan_reach_m) & ~np.isin(scans, scans[pick])
                 if foreign.any():
                     r_f = radius_at(sub[foreign], zb[foreign], max_taper_m_per_m, extrapolate=True)
                     if (r_f >= lone_one_scan_ratio * dbh / 2).all():
                         lone = (f"DBH from {int(foreign.sum())} cylinders of other scans within "
-                                f"{dbh_extrapolate_m:g} m of breast height: the one nearest gave {100 * dbh:.1f} cm")
+                                f"{lone_one_scan_reach_m:g} m of breast height: the one nearest gave {100 * dbh:.1f} cm")
                         dbh = 2.0 * weighted_stat(r_f, dbh_weights[m][foreign], dbh_statistic)
             note = dbh_note_for(zlo[m][pick] - g, zhi[m][pick] - g, gap[pick], breast_height_m,
                                 dbh_reach_m if extrapolated else None)
