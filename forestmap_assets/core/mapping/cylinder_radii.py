@@ -10,7 +10,7 @@ import pandas as pd
 
 
 def radius_at(cyl: pd.DataFrame, z: np.ndarray,
-               max_taper_m_per_m: float | None = None, extrapolate: bool = False) -> np.ndarray:
+              max_taper_m_per_m: float | None = None, extrapolate: bool = False) -> np.ndarray:
     """Truncated-cone radius at heights ``z``, clamped to the cylinder's ends; with
     ``max_taper_m_per_m`` the cone's slope about its mid height is limited to that taper.
 
@@ -58,11 +58,12 @@ def scan_median(r: np.ndarray, w: np.ndarray, scan: np.ndarray | None) -> float:
 
 
 def dbh_note_for(lo: np.ndarray, hi: np.ndarray, gap: np.ndarray, breast_height_m: float,
-              extrapolated_beyond_m: float | None) -> str:
+                 extrapolated_beyond_m: float | None, why: str = "") -> str:
     """How a DBH was obtained from the cylinders spanning heights ``lo``-``hi`` above the
     ground, ``gap`` from breast height: empty when one spans breast height; else the radius at
     their nearest ends or, with ``extrapolated_beyond_m`` (the reach none of them is within),
-    their cones extrapolated to breast height."""
+    their cones extrapolated to breast height; ``why`` says why they were, instead of "no
+    cylinder within that reach" (where nearer ones were set aside)."""
     if (gap <= 0.0).any():
         return ""
     above = lo > breast_height_m
@@ -79,8 +80,8 @@ def dbh_note_for(lo: np.ndarray, hi: np.ndarray, gap: np.ndarray, breast_height_
         return (f"no cylinder at breast height: radius at the nearest end of {which} {heights} "
                 f"({_span(gap)} m {side} breast height)")
     direction = "down" if above.all() else "up" if not above.any() else "down or up"
-    return (f"no cylinder within {extrapolated_beyond_m:g} m of breast height: taper "
-            f"extrapolated {_span(gap)} m {direction} from {which} {heights}")
+    why = why or f"no cylinder within {extrapolated_beyond_m:g} m of breast height"
+    return f"{why}: taper extrapolated {_span(gap)} m {direction} from {which} {heights}"
 
 
 def _span(v: np.ndarray) -> str:

@@ -233,8 +233,7 @@ def merge_trees(
     Cylinders that read small (inferred, issue 19): of three or more cylinders giving the DBH,
     those whose radius at breast height is below ``small_share`` (0.7) of the median over their
     scans (each scan's weighted mean, :func:`.cylinder_radii.scan_median`) are left out while
-    two or more
-    remain. A circle through a short arc of a half-hidden stem fits far too small, and a near
+    two or more remain. A circle through a short arc of a half-hidden stem fits far too small, and a near
     scan's weight (its small footprint) let one such cylinder pull the mean: own realistic
     survey 7, a 37 cm stem read 29 cm, its 8.6 cm-radius cylinder from 3.5 m outweighing six
     that read 17-18 cm. Stored surveys, DBH RMSE pooled over own, Sylva and rendered (27
@@ -268,13 +267,14 @@ def merge_trees(
     Only one other scan (inferred, issue 19): when one scan alone gives the DBH and the
     cylinders of other scans within ``lone_one_scan_reach_m`` (2.5 m) of breast height all read
     ``lone_one_scan_ratio`` (1.6, stricter than the two-scan rule's 1.4) times its radius or
-    more, they give the DBH (their cones extrapolated, taper limited as above). Held-out own realistic seeds 71 and 72: 21-22 cm stems read 12-14
-    cm from one scan's cylinders 16 m away (the near arc of a stem hidden by understorey),
-    where one other scan read 22-26 cm; DBH RMSE over seeds 65-74 1.19 -> 1.01 cm, the 54
-    stored own realistic surveys 1.006 -> 0.995 (one tree), Sylva, rendered and circular
-    unchanged (results.md "one_other_scan"). Reach 2.0 -> 2.5 m: PLY seed 84, a 24.7 cm stem
-    read 13.1 cm (partial arcs from 12.5 m) where the other scan began 2.03 m above breast
-    height reading 27 cm; PLY seeds 83-90 1.21 -> 1.03 cm, nothing else changed by > 0.6 cm.
+    more, they give the DBH (their cones extrapolated, taper limited as above). Held-out own
+    realistic seeds 71 and 72: 21-22 cm stems read 12-14 cm from one scan's cylinders 16 m
+    away (the near arc of a stem hidden by understorey), where one other scan read 22-26 cm;
+    DBH RMSE over seeds 65-74 1.19 -> 1.01 cm, the 54 stored own realistic surveys 1.006 ->
+    0.995 (one tree), Sylva, rendered and circular unchanged (results.md "one_other_scan").
+    Reach 2.0 -> 2.5 m: PLY seed 84, a 24.7 cm stem read 13.1 cm (partial arcs from 12.5 m)
+    where the other scan began 2.03 m above breast height reading 27 cm; PLY seeds 83-90 1.21
+    -> 1.03 cm, nothing else changed by > 0.6 cm.
 
     Near breast height but only far (inferred, issue 19): when every cylinder within
     ``dbh_reach_m`` was seen from beyond ``dbh_max_range_m`` and cylinders within
@@ -375,12 +375,11 @@ def merge_trees(
                     r_f = radius_at(sub[foreign], zb[foreign], max_taper_m_per_m, extrapolate=True)
                     if (r_f >= lone_one_scan_ratio * dbh / 2).all():
                         lone = (f"DBH from {int(foreign.sum())} cylinders of other scans within "
-                                f"{lone_one_scan_reach_m:g} m of breast height: the one nearest gave {100 * dbh:.1f} cm")
+                                f"{lone_one_scan_reach_m:g} m of breast height: the one nearest gave "
+                                f"{100 * dbh:.1f} cm")
                         dbh = 2.0 * weighted_stat(r_f, dbh_weights[m][foreign], dbh_statistic)
             note = dbh_note_for(zlo[m][pick] - g, zhi[m][pick] - g, gap[pick], breast_height_m,
-                                dbh_reach_m if extrapolated else None)
-            if far:  # "no cylinder within ..." would deny the far ones
-                note = f"{far}: {note.split(': ', 1)[1]}"
+                                dbh_reach_m if extrapolated else None, why=far)
             if note and has_range and dbh_max_range_m is not None and not close.any():
                 note += f", seen from {obs_range[m][pick].min():.0f} m or farther"
             note = "; ".join(filter(None, [note, lone]))
