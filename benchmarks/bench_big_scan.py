@@ -121,7 +121,7 @@ def measure(campaign_dir: str) -> dict:
     from forestmap_assets.core.features.circle_models import final_circles, fit_circle_models
     from forestmap_assets.core.features.cylinders import assemble_cylinders
     from forestmap_assets.core.features.range_image import RangeImage
-    from forestmap_assets.core.features.segments import segment_scan_lines
+    from forestmap_assets.core.features.segments import feature_scan_lines, segment_scan_lines
     from forestmap_assets.io.campaign import load_campaign
 
     camp = load_campaign(Path(campaign_dir))
@@ -145,6 +145,7 @@ def measure(campaign_dir: str) -> dict:
     t = time.perf_counter()
     image = RangeImage.from_table(image.to_table())
     out["table_s"] = time.perf_counter() - t
+    image = feature_scan_lines(image, p.segmentation.min_line_step_deg)  # as the assets do
     t = time.perf_counter()
     seg = segment_scan_lines(image, p.segmentation, max_window_px=p.segmentation.max_window_px)
     out["segments_s"] = time.perf_counter() - t

@@ -33,7 +33,7 @@ def campaign_submap_tables(folder: Path, progress=print) -> dict[str, pd.DataFra
                 for s, g in table.groupby("scan", sort=True)}
     from forestmap_assets.core.features.circle_models import fit_circle_models
     from forestmap_assets.core.features.cylinders import assemble_cylinders
-    from forestmap_assets.core.features.segments import segment_scan_lines
+    from forestmap_assets.core.features.segments import feature_scan_lines, segment_scan_lines
     from forestmap_assets.core.registration.submaps import build_submap
     from forestmap_assets.io.campaign import load_campaign
     from forestmap_assets.io.readers import read_scan
@@ -44,6 +44,7 @@ def campaign_submap_tables(folder: Path, progress=print) -> dict[str, pd.DataFra
     for entry in camp.scans:
         image = read_scan(entry.path, angular_step_deg=camp.angular_step_deg, tilt_deg=entry.tilt_deg)
         # the calls of the segments, circle_models, cylinder_segments and submaps assets
+        image = feature_scan_lines(image, p.segmentation.min_line_step_deg)
         seg = segment_scan_lines(image, p.segmentation,
                                  max_window_px=p.segmentation.max_window_px)
         cp = p.circles

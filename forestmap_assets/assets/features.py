@@ -32,6 +32,14 @@ def _image(table) -> RangeImage:
     return RangeImage.from_table(table)
 
 
+def _feature_image(table, params) -> RangeImage:
+    """The stored range image on the scan lines of the segments and circle models
+    (``segmentation.min_line_step_deg``)."""
+    from forestmap_assets.core.features.segments import feature_scan_lines
+
+    return feature_scan_lines(_image(table), params.segmentation.min_line_step_deg)
+
+
 def _counts(series: pd.Series) -> dict[str, int]:
     return {str(k) if k else "valid": int(v) for k, v in series.value_counts().items()}
 
@@ -65,7 +73,7 @@ def feature_assets(campaign: Campaign) -> list:
     )
     @timed
     def segments(context, range_images):
-        image = _image(range_images)
+        image = _feature_image(range_images, params)
         table = segment_scan_lines(image, params.segmentation, max_window_px=params.segmentation.max_window_px)
         meta = {
             "segments": len(table),
@@ -91,7 +99,7 @@ def feature_assets(campaign: Campaign) -> list:
     )
     @timed
     def circle_models(context, range_images, segments):
-        image = _image(range_images)
+        image = _feature_image(range_images, params)
         cp = params.circles
         options = ("fit", "symmetry_statistic", "stable_centre_m", "stable_radius_m", "stable_normal_deg",
                    "stable_share", "stable_gain", "max_batch_points", "engine")
@@ -134,7 +142,7 @@ def feature_assets(campaign: Campaign) -> list:
             "total_length_m": round(float(table["length_m"].sum()), 2) if len(table) else 0.0,
             "median_radius_m": round(float(table["radius_m"].median()), 4) if len(table) else 0.0,
         }
-        image = _image(range_images)  # JP Fig. 7d: the cylinders over the range image
+        image = _feature_image(range_images, params)  # JP Fig. 7d: the cylinders over the range image
         meta["cylinders_picture"] = picture_metadata(
             range_mask_picture(image, None, f"cylinder segments, scan {context.partition_key}",
                               outlines=cylinder_outlines(image, table))

@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 from helpers.synthetic import Cylinder, Scene, Wall, grid, render
 
+from forestmap_assets.core.features.circle_models import final_circles, fit_circle_models
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.core.features.segments import (
     SEGMENT_COLUMNS,
     blocking_max_filter,
+    feature_scan_lines,
     occluder_window,
     segment_mask,
     segment_pixels,
@@ -142,3 +144,29 @@ def test_empty_inputs_give_well_formed_empty_tables():
             assert len(seg) == 0
             assert dict(seg.dtypes.astype(str)) == SEGMENT_COLUMNS
             assert segment_mask(img, seg).shape == img.shape
+
+
+def test_scan_lines_closer_than_the_line_step_are_thinned_and_the_stem_kept():
+    """``segmentation.min_line_step_deg`` (issue 16): a 0.05 deg scan keeps every 4th row for
+    the segments and circle models, the thesis' 0.108 deg every row; the stem's circles on the
+    thinned rows give its radius as the full rows do, from a quarter of the circles."""
+    stem = Cylinder((8.0, 0.0, -1.5), (0, 0, 1), 0.15, 6.0)
+    scene = Scene([stem], ground_z=None)
+    a, e = grid((-4, 4), (-5, 20), step_deg=0.05)
+    img, _ = render(scene, a, e, noise_m=0.005)
+    step = SegmentationParams().min_line_step_deg
+    thin = feature_scan_lines(img, step)
+    assert thin.shape == (len(img.elevation_deg[::4]), img.shape[1])
+    np.testing.assert_array_equal(thin.elevation_deg, img.elevation_deg[::4])
+    np.testing.assert_array_equal(thin.range_m, img.range_m[::4])
+    assert feature_scan_lines(img, 0.0) is img
+    a108, e108 = grid((-4, 4), (-5, 20), step_deg=0.108)
+    img108, _ = render(scene, a108, e108, noise_m=0.005)
+    assert feature_scan_lines(img108, step) is img108
+    radii = {}
+    for name, im in (("full", img), ("thin", thin)):
+        fin = final_circles(fit_circle_models(im, segment_scan_lines(im)))
+        radii[name] = fin.loc[fin["valid"], "radius_m"].to_numpy()
+    assert 3.5 < radii["full"].size / radii["thin"].size < 4.5
+    for r in radii.values():
+        assert abs(np.median(r) - 0.15) < 0.003

@@ -42,7 +42,7 @@ import pandas as pd
 
 from forestmap_assets.core.features.circle_models import final_circles, fit_circle_models
 from forestmap_assets.core.features.range_image import RangeImage
-from forestmap_assets.core.features.segments import segment_scan_lines
+from forestmap_assets.core.features.segments import feature_scan_lines, segment_scan_lines
 from forestmap_assets.params import CylinderParams, Params
 
 CYLINDER_COLUMNS: dict[str, str] = {
@@ -293,13 +293,15 @@ def _cylinder_table(circles: pd.DataFrame, member: np.ndarray, p: CylinderParams
 
 def extract_features(image: RangeImage, params: Params | None = None,
                      **circle_options) -> dict[str, pd.DataFrame]:
-    """Segments -> circle models -> cylinder segments of one range image (spec 2-4).
+    """Segments -> circle models -> cylinder segments of one range image (spec 2-4), on its
+    scan lines thinned to ``segmentation.min_line_step_deg`` (:func:`feature_scan_lines`).
 
     Returns ``{"segments", "circle_models", "cylinder_segments"}``; ``circle_models`` holds every
     iteration (column ``iteration``), cylinders use the final one. ``circle_options`` are passed
     to :func:`fit_circle_models` (e.g. ``fit``, ``engine``, ``symmetry_statistic``).
     """
     p = params or Params()
+    image = feature_scan_lines(image, p.segmentation.min_line_step_deg)
     segments = segment_scan_lines(image, p.segmentation)
     circles = fit_circle_models(image, segments, p.circles, p.segmentation, **circle_options)
     cylinders = assemble_cylinders(final_circles(circles), p.cylinders)
