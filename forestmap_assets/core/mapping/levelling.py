@@ -39,12 +39,12 @@ def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: f
 
     Each pair of cylinders that share ``min_overlap_m`` of height and meet within ``match_m``
     gives the two axes' offset ``d`` at both ends of their common heights; the reference's
-    cylinders are grouped into stems (:func:`~.trees.group_stems`), and ``d = c_stem + s z``
+    cylinders are grouped into stems (:func:`~.stem_groups.group_stems`), and ``d = c_stem + s z``
     is fitted with one intercept per stem and one ``s`` for all (Huber, ``huber_m``), so a
     stem's whole height is the lever (weights: common height times circles); its sd is
     clustered by stem."""
     from forestmap_assets.core.geometry import transform_points
-    from forestmap_assets.core.mapping.trees import axis_at, group_stems
+    from forestmap_assets.core.mapping.stem_groups import axis_at, group_stems
 
     out = dict(zip(TILT_COLUMNS, [np.nan, np.nan, np.nan, 0], strict=True))
     if len(scan_cyl) == 0 or len(ref_cyl) == 0:

@@ -5,7 +5,8 @@ breast height is forestmap's step (inferred, parameters below):
 
 1. cylinders of all scans are grouped into stems: two cylinders belong to the same stem when
    their axes, evaluated at a common height, are closer than ``merge_factor`` x the smaller
-   radius + ``merge_tolerance_m`` (different stems cannot be closer than the sum of radii);
+   radius + ``merge_tolerance_m`` (different stems cannot be closer than the sum of radii),
+   and no link joins two stems seen side by side near their bases (:mod:`.stem_groups`);
 2. the ground under a stem is the median of the lowest-hit elevation cells in an annulus
    around it, keeping only cells near the annulus' lowest surface (crown hits in cells the
    ground was not seen in are ignored, :func:`ground_under`), falling back to the lowest
@@ -26,8 +27,6 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.mapping.cylinder_radii import (
@@ -36,6 +35,7 @@ from forestmap_assets.core.mapping.cylinder_radii import (
     scan_median,
     weighted_stat,
 )
+from forestmap_assets.core.mapping.stem_groups import axis_at, group_stems
 
 TREE_COLUMNS = ["tree_id", "x", "y", "z", "dbh_m", "n_scans", "n_cylinders", "visible_length_m",
                 "dbh_note"]
@@ -65,39 +65,6 @@ def cylinders_to_global(per_scan: dict[str, pd.DataFrame], poses: dict[str, tupl
         return pd.DataFrame({c: pd.Series(dtype="int64" if c in ("cylinder_id", "n_circles") else "float64") for c in cols}).astype({"scan": "object"})
     out = pd.concat(frames, ignore_index=True)
     return out
-
-
-def axis_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
-    """xy of each cylinder's axis line at heights ``z`` (extrapolated along the axis)."""
-    p0 = cyl[["x0", "y0", "z0"]].to_numpy(float)
-    p1 = cyl[["x1", "y1", "z1"]].to_numpy(float)
-    dz = p1[:, 2] - p0[:, 2]
-    t = np.where(np.abs(dz) > 1e-6, (z - p0[:, 2]) / np.where(np.abs(dz) > 1e-6, dz, 1.0), 0.0)
-    return p0[:, :2] + t[:, None] * (p1[:, :2] - p0[:, :2])
-
-
-def group_stems(cyl: pd.DataFrame, merge_factor: float = 0.75, merge_tolerance_m: float = 0.06) -> np.ndarray:
-    """Stem label per cylinder (connected components of the 'same axis' relation)."""
-    n = len(cyl)
-    if n == 0:
-        return np.zeros(0, dtype=int)
-    mid = 0.5 * (cyl[["x0", "y0", "z0"]].to_numpy(float) + cyl[["x1", "y1", "z1"]].to_numpy(float))
-    radius = cyl["radius_m"].to_numpy(float)
-    pairs = cKDTree(mid[:, :2]).query_pairs(r=1.0, output_type="ndarray")
-    if len(pairs) == 0:
-        return np.arange(n)
-    i, j = pairs[:, 0], pairs[:, 1]
-    # evaluate both axes at the middle of their height overlap (or between them)
-    lo = np.maximum(np.minimum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[i], np.minimum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[j])
-    hi = np.minimum(np.maximum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[i], np.maximum(cyl["z0"].to_numpy(), cyl["z1"].to_numpy())[j])
-    zc = 0.5 * (lo + hi)
-    ai = axis_at(cyl.iloc[i], zc)
-    aj = axis_at(cyl.iloc[j], zc)
-    dist = np.hypot(*(ai - aj).T)
-    same = dist < merge_factor * np.minimum(radius[i], radius[j]) + merge_tolerance_m
-    graph = coo_matrix((np.ones(same.sum()), (i[same], j[same])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    return labels
 
 
 def ground_under(xy: np.ndarray, radius: np.ndarray, grid_z: np.ndarray, x0: float, y0: float,
