@@ -271,3 +271,33 @@ def test_select_links_rejects_corrupted_loop_links():
     assert np.all(err[1:] < 4 * sd[1:] + 1e-9)
     herr = np.abs(wrap_deg(p["heading_deg"].to_numpy(dtype=float) - truth[:, 3]))
     assert np.all(herr[1:] < 4 * p["sd_heading_deg"].to_numpy(dtype=float)[1:])
+
+
+def test_an_outvoted_spanning_tree_link_is_left_out():
+    """A scan's most confident link, which places it in the spanning tree unchecked, is
+    corrupted (+0.1 deg, 2 cm); its three other links agree with each other and with the
+    rest of the network. Without the re-selection each of the three is rejected as
+    inconsistent with the tree link and the scan sits on the bad link; with it (``outvote``
+    2, the default) the tree link is left out, named as outvoted, and the scan is placed
+    within 4 sigma of the truth."""
+    names, truth, obs = _simulate(6, seed=3, noise=0.0, extra_links=9)
+    obs[SD] = [0.003, 0.003, 0.002, 0.008]
+    obs["confidence"] = 1.0
+    at = obs.index[obs["scan"].eq("s5") | obs["reference"].eq("s5")]
+    assert len(at) >= 3
+    bad = at[0]
+    obs.loc[bad, "dheading_deg"] += 0.1
+    obs.loc[bad, "dx"] += 0.02
+    obs.loc[bad, "confidence"] = 2.0
+    obs.loc[bad, SD] = [0.004, 0.004, 0.003, 0.026]
+    plain = select_links(obs, "s0", outvote=0)
+    assert plain.links.loc[bad, "role"] == "tree"
+    assert (plain.links.loc[at[1:], "status"] == "rejected").all()
+    sel = select_links(obs, "s0")
+    assert sel.links.loc[bad, "status"] == "rejected"
+    assert sel.links.loc[bad, "reason"].startswith("spanning-tree link outvoted")
+    assert (sel.links.drop(index=bad)["status"] == "admitted").all()
+    p = sel.solution.poses.set_index("scan")
+    herr = abs(wrap_deg(p.loc["s5", "heading_deg"] - truth[5, 3]))
+    assert herr < 4 * p.loc["s5", "sd_heading_deg"]
+    assert abs(wrap_deg(plain.solution.poses.set_index("scan").loc["s5", "heading_deg"] - truth[5, 3])) > 0.05
