@@ -11,8 +11,9 @@ their radii + ``apart_margin_m``, within ``base_height_m`` of the lowest cylinde
 belong to different stems, and no link joins two groups holding such a pair. Links are taken
 shortest extrapolation first (cylinders overlapping in height, then across ever longer gaps;
 ties by the axis distance over the tolerance), so a short cylinder joins the stem it sits on
-before a far one its axis happens to point at. The rule stops at ``base_height_m`` because a forked stem's
-leaders stand side by side above the fork (2-8 m up in the own simulator) and are one tree.
+before a far one its axis happens to point at. The rule stops at ``base_height_m`` because a
+forked stem's leaders stand side by side above the fork (2-8 m up in the own simulator) and are
+one tree.
 Own realistic surveys 55-74 and PLY 83-106 (44 surveys, stems labelled by their true axes):
 stems merged with another 10 -> 2, stems split over two groups 48 -> 49.
 """
@@ -33,12 +34,10 @@ def axis_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
     return p0[:, :2] + t[:, None] * (p1[:, :2] - p0[:, :2])
 
 
-def _axis_pairs(cyl: pd.DataFrame, mid: np.ndarray, reach_m: float):
+def _axis_pairs(cyl: pd.DataFrame, mid: np.ndarray, zlo: np.ndarray, zhi: np.ndarray, reach_m: float):
     """Cylinder pairs with midpoints within ``reach_m`` (horizontally): indices, their common
     height range ``lo..hi`` (``lo > hi``: a gap) and the axes' distance at its middle."""
     i, j = cKDTree(mid[:, :2]).query_pairs(r=reach_m, output_type="ndarray").T
-    z = cyl[["z0", "z1"]].to_numpy(float)
-    zlo, zhi = z.min(axis=1), z.max(axis=1)
     lo, hi = np.maximum(zlo[i], zlo[j]), np.minimum(zhi[i], zhi[j])
     zc = 0.5 * (lo + hi)
     dist = np.hypot(*(axis_at(cyl.iloc[i], zc) - axis_at(cyl.iloc[j], zc)).T)
@@ -55,16 +54,17 @@ def group_stems(cyl: pd.DataFrame, merge_factor: float = 0.75, merge_tolerance_m
         return np.zeros(0, dtype=int)
     mid = 0.5 * (cyl[["x0", "y0", "z0"]].to_numpy(float) + cyl[["x1", "y1", "z1"]].to_numpy(float))
     radius = cyl["radius_m"].to_numpy(float)
-    i, j, lo, hi, dist = _axis_pairs(cyl, mid, 1.0)
+    z = cyl[["z0", "z1"]].to_numpy(float)
+    zlo, zhi = z.min(axis=1), z.max(axis=1)
+    i, j, lo, hi, dist = _axis_pairs(cyl, mid, zlo, zhi, 1.0)
     tol = merge_factor * np.minimum(radius[i], radius[j]) + merge_tolerance_m
     links = np.flatnonzero(dist < tol)
     gap = np.maximum(lo - hi, 0.0)
     links = links[np.lexsort((dist[links] / tol[links], gap[links]))]  # shortest extrapolation first
     # pairs that are two stems: side by side, apart, near the ground around them
-    a, b, alo, ahi, adist = _axis_pairs(cyl, mid, apart_reach_m)
+    a, b, alo, ahi, adist = _axis_pairs(cyl, mid, zlo, zhi, apart_reach_m)
     apart = np.flatnonzero((ahi - alo >= min_overlap_m) & (adist > radius[a] + radius[b] + apart_margin_m))
     if apart.size:
-        zlo = cyl[["z0", "z1"]].to_numpy(float).min(axis=1)
         around = cKDTree(mid[:, :2]).query_ball_point(0.5 * (mid[a[apart], :2] + mid[b[apart], :2]), r=1.5)
         base = np.array([zlo[k].min() for k in around])
         apart = apart[alo[apart] <= base + base_height_m]
