@@ -195,14 +195,19 @@ def mapping_assets(campaign: Campaign) -> list:
     @timed
     def scan_tilts(context, optimal_map, cylinder_segments):
         from forestmap_assets.core.mapping.levelling import link_tilt, needs_levelling, solve_tilts
+        from forestmap_assets.core.mapping.stem_groups import group_stems
 
         links = optimal_map["links"]
         cyl = cylinder_segments or {}
+        stems: dict[str, np.ndarray] = {}  # each reference scan's stems, grouped once
         rows = []
         for r in links.itertuples():
             if r.scan in cyl and r.reference in cyl:
+                if r.reference not in stems:
+                    stems[r.reference] = group_stems(cyl[r.reference])
                 rows.append({"scan": r.scan, "reference": r.reference, "dheading_deg": r.dheading_deg,
-                             **link_tilt(cyl[r.scan], cyl[r.reference], (r.dx, r.dy, r.dz, r.dheading_deg))})
+                             **link_tilt(cyl[r.scan], cyl[r.reference], (r.dx, r.dy, r.dz, r.dheading_deg),
+                                         ref_stems=stems[r.reference])})
         measured = pd.DataFrame(rows, columns=["scan", "reference", "dheading_deg", "tilt_x_deg", "tilt_y_deg",
                                                "sd_tilt_deg", "n_tilt"])
         tilts = solve_tilts(measured, campaign.scan_ids, reference)

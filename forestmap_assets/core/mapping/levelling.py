@@ -31,7 +31,8 @@ TILT_COLUMNS = ["tilt_x_deg", "tilt_y_deg", "sd_tilt_deg", "n_tilt"]
 
 
 def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: float = 0.1,
-              min_overlap_m: float = 0.3, huber_m: float = 0.01, min_stems: int = 8) -> dict:
+              min_overlap_m: float = 0.3, huber_m: float = 0.01, min_stems: int = 8,
+              ref_stems: np.ndarray | None = None) -> dict:
     """Tilt of scan ``i`` against reference ``j`` in ``i``'s frame (module docstring):
     ``tilt_x_deg, tilt_y_deg``, its sd ``sd_tilt_deg`` and the stems it came from ``n_tilt``
     (NaN and 0 with fewer than ``min_stems``). ``pose``: ``(dx, dy, dz, heading_deg)`` of ``i``
@@ -42,31 +43,31 @@ def link_tilt(scan_cyl: pd.DataFrame, ref_cyl: pd.DataFrame, pose, *, match_m: f
     cylinders are grouped into stems (:func:`~.stem_groups.group_stems`), and ``d = c_stem + s z``
     is fitted with one intercept per stem and one ``s`` for all (Huber, ``huber_m``), so a
     stem's whole height is the lever (weights: common height times circles); its sd is
-    clustered by stem."""
+    clustered by stem. ``ref_stems``: the reference's stem labels when already known
+    (:func:`~.stem_groups.group_stems` of ``ref_cyl``; a scan is the reference of several pairs)."""
     from forestmap_assets.core.geometry import transform_points
-    from forestmap_assets.core.mapping.stem_groups import axis_at, group_stems
+    from forestmap_assets.core.mapping.stem_groups import axis_xy, ends, group_stems
 
     out = dict(zip(TILT_COLUMNS, [np.nan, np.nan, np.nan, 0], strict=True))
     if len(scan_cyl) == 0 or len(ref_cyl) == 0:
         return out
     h = np.radians(float(pose[3]))
     c, s = np.cos(h), np.sin(h)
-    a = scan_cyl.copy()  # the scan's cylinders in the reference's frame
-    for e in "01":
-        a[[f"x{e}", f"y{e}", f"z{e}"]] = transform_points(scan_cyl[[f"x{e}", f"y{e}", f"z{e}"]].to_numpy(float), pose)
-    lo_a, hi_a = np.minimum(a["z0"], a["z1"]).to_numpy(), np.maximum(a["z0"], a["z1"]).to_numpy()
-    lo_b, hi_b = np.minimum(ref_cyl["z0"], ref_cyl["z1"]).to_numpy(), np.maximum(ref_cyl["z0"], ref_cyl["z1"]).to_numpy()
+    ea = ends(scan_cyl)  # the scan's cylinders in the reference's frame
+    ea = np.hstack([transform_points(ea[:, :3], pose), transform_points(ea[:, 3:], pose)])
+    eb = ends(ref_cyl)
+    lo_a, hi_a = np.minimum(ea[:, 2], ea[:, 5]), np.maximum(ea[:, 2], ea[:, 5])
+    lo_b, hi_b = np.minimum(eb[:, 2], eb[:, 5]), np.maximum(eb[:, 2], eb[:, 5])
     lo = np.maximum(lo_a[:, None], lo_b[None])
     hi = np.minimum(hi_a[:, None], hi_b[None])
     ia, ib = np.nonzero(hi - lo >= min_overlap_m)
     if not ia.size:
         return out
     z = np.stack([lo[ia, ib], hi[ia, ib]], axis=1)
-    ra, rb = a.iloc[ia], ref_cyl.iloc[ib]
-    d = np.stack([axis_at(rb, z[:, k]) - axis_at(ra, z[:, k]) for k in range(2)], axis=1)  # (k, 2 heights, xy)
+    d = np.stack([axis_xy(eb[ib], z[:, k]) - axis_xy(ea[ia], z[:, k]) for k in range(2)], axis=1)  # (k, 2 heights, xy)
     near = np.hypot(*d.mean(axis=1).T) <= match_m
-    stem = group_stems(ref_cyl)[ib[near]]
-    n_circ = np.minimum(a["n_circles"].to_numpy(float)[ia], ref_cyl["n_circles"].to_numpy(float)[ib])[near]
+    stem = (group_stems(ref_cyl) if ref_stems is None else np.asarray(ref_stems))[ib[near]]
+    n_circ = np.minimum(scan_cyl["n_circles"].to_numpy(float)[ia], ref_cyl["n_circles"].to_numpy(float)[ib])[near]
     w = np.repeat((z[near, 1] - z[near, 0]) * np.maximum(n_circ, 1.0), 2)
     zz, dd, g = z[near].ravel(), d[near].reshape(-1, 2), np.repeat(stem, 2)
     _, g = np.unique(g, return_inverse=True)

@@ -25,22 +25,31 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 
+def ends(cyl: pd.DataFrame) -> np.ndarray:
+    """The cylinders' axis end points ``x0, y0, z0, x1, y1, z1`` as an (n, 6) array."""
+    return cyl[["x0", "y0", "z0", "x1", "y1", "z1"]].to_numpy(float)
+
+
+def axis_xy(e: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """xy of each axis (rows of :func:`ends`) at heights ``z`` (extrapolated along the axis)."""
+    dz = e[:, 5] - e[:, 2]
+    t = np.where(np.abs(dz) > 1e-6, (z - e[:, 2]) / np.where(np.abs(dz) > 1e-6, dz, 1.0), 0.0)
+    return e[:, :2] + t[:, None] * (e[:, 3:5] - e[:, :2])
+
+
 def axis_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
     """xy of each cylinder's axis line at heights ``z`` (extrapolated along the axis)."""
-    p0 = cyl[["x0", "y0", "z0"]].to_numpy(float)
-    p1 = cyl[["x1", "y1", "z1"]].to_numpy(float)
-    dz = p1[:, 2] - p0[:, 2]
-    t = np.where(np.abs(dz) > 1e-6, (z - p0[:, 2]) / np.where(np.abs(dz) > 1e-6, dz, 1.0), 0.0)
-    return p0[:, :2] + t[:, None] * (p1[:, :2] - p0[:, :2])
+    return axis_xy(ends(cyl), z)
 
 
-def _axis_pairs(cyl: pd.DataFrame, mid: np.ndarray, zlo: np.ndarray, zhi: np.ndarray, reach_m: float):
-    """Cylinder pairs with midpoints within ``reach_m`` (horizontally): indices, their common
-    height range ``lo..hi`` (``lo > hi``: a gap) and the axes' distance at its middle."""
+def _axis_pairs(e: np.ndarray, mid: np.ndarray, zlo: np.ndarray, zhi: np.ndarray, reach_m: float):
+    """Cylinder pairs (axis ends ``e``) with midpoints within ``reach_m`` (horizontally):
+    indices, their common height range ``lo..hi`` (``lo > hi``: a gap) and the axes' distance
+    at its middle."""
     i, j = cKDTree(mid[:, :2]).query_pairs(r=reach_m, output_type="ndarray").T
     lo, hi = np.maximum(zlo[i], zlo[j]), np.minimum(zhi[i], zhi[j])
     zc = 0.5 * (lo + hi)
-    dist = np.hypot(*(axis_at(cyl.iloc[i], zc) - axis_at(cyl.iloc[j], zc)).T)
+    dist = np.hypot(*(axis_xy(e[i], zc) - axis_xy(e[j], zc)).T)
     return i, j, lo, hi, dist
 
 
@@ -52,17 +61,17 @@ def group_stems(cyl: pd.DataFrame, merge_factor: float = 0.75, merge_tolerance_m
     n = len(cyl)
     if n == 0:
         return np.zeros(0, dtype=int)
-    mid = 0.5 * (cyl[["x0", "y0", "z0"]].to_numpy(float) + cyl[["x1", "y1", "z1"]].to_numpy(float))
+    e = ends(cyl)
+    mid = 0.5 * (e[:, :3] + e[:, 3:])
     radius = cyl["radius_m"].to_numpy(float)
-    z = cyl[["z0", "z1"]].to_numpy(float)
-    zlo, zhi = z.min(axis=1), z.max(axis=1)
-    i, j, lo, hi, dist = _axis_pairs(cyl, mid, zlo, zhi, 1.0)
+    zlo, zhi = np.minimum(e[:, 2], e[:, 5]), np.maximum(e[:, 2], e[:, 5])
+    i, j, lo, hi, dist = _axis_pairs(e, mid, zlo, zhi, 1.0)
     tol = merge_factor * np.minimum(radius[i], radius[j]) + merge_tolerance_m
     links = np.flatnonzero(dist < tol)
     gap = np.maximum(lo - hi, 0.0)
     links = links[np.lexsort((dist[links] / tol[links], gap[links]))]  # shortest extrapolation first
     # pairs that are two stems: side by side, apart, near the ground around them
-    a, b, alo, ahi, adist = _axis_pairs(cyl, mid, zlo, zhi, apart_reach_m)
+    a, b, alo, ahi, adist = _axis_pairs(e, mid, zlo, zhi, apart_reach_m)
     apart = np.flatnonzero((ahi - alo >= min_overlap_m) & (adist > radius[a] + radius[b] + apart_margin_m))
     if apart.size:
         around = cKDTree(mid[:, :2]).query_ball_point(0.5 * (mid[a[apart], :2] + mid[b[apart], :2]), r=1.5)
