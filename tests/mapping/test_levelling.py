@@ -57,6 +57,10 @@ def test_link_tilt_reads_the_scans_relative_tilt():
     assert got["sd_tilt_deg"] < 0.02
     level = link_tilt(_view(seg, (0.0, 0.0), pose, rng), ref, pose)
     assert np.hypot(level["tilt_x_deg"], level["tilt_y_deg"]) < 0.04
+    # the reference's stems grouped once for all its pairs (scan_tilts) give the same tilt
+    from forestmap_assets.core.mapping.stem_groups import group_stems
+
+    assert link_tilt(scan, ref, pose, ref_stems=group_stems(ref)) == got
 
 
 def test_link_tilt_needs_shared_stems():
