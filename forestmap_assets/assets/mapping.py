@@ -286,13 +286,15 @@ def mapping_assets(campaign: Campaign) -> list:
             from_outline = int(fits["outline_dbh_m"].notna().sum()) if "outline_dbh_m" in fits else 0
             from_slice = int((fits["reason"] == "").sum())
             if "caliper_widening_m" in fits and len(fits):
-                widening = round(float(fits["caliper_widening_m"].iat[0]), 4)
+                widening = {"silhouette_widening_m": round(float(fits["caliper_widening_m"].iat[0]), 4)}
+                if np.isfinite(far := float(fits["caliper_widening_far_m"].iat[0])):
+                    widening["silhouette_widening_far_m"] = round(far, 4)
         dbh = trees["dbh_m"].dropna()
         noted = trees["dbh_note"].astype(bool)
         meta = {"trees": len(trees), "with_dbh": int(len(dbh)), "dbh_from_slice": from_slice,
                 "dbh_with_silhouette_widths": from_calipers, "dbh_with_outline": from_outline,
                 "dbh_with_note": int((noted & trees["dbh_m"].notna()).sum()),
-                **({} if widening is None else {"silhouette_widening_m": widening}),
+                **(widening or {}),
                 "median_dbh_m": round(float(dbh.median()), 3) if len(dbh) else 0.0,
                 "seen_from_2_or_more_scans": int((trees["n_scans"] >= 2).sum()),
                 "dbh_histogram": png_metadata(dbh_histogram(trees, title=f"{campaign.name}: DBH of {len(dbh)} trees"))}

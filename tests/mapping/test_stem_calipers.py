@@ -8,10 +8,10 @@ import pandas as pd
 import pyarrow as pa
 import pytest
 
+from forestmap_assets.core.mapping.silhouette_widening import campaign_widening
 from forestmap_assets.core.mapping.stem_calipers import (
     blend_calipers,
     caliper_dbh,
-    campaign_widening,
     outline_refs,
     silhouette_edges,
     tree_calipers,
@@ -288,16 +288,41 @@ def test_campaign_widening_from_the_trees_with_a_slice():
         return pd.DataFrame({"tree": np.arange(n), "caliper_dbh_m": slice_dbh + excess, "caliper_sd_m": 0.01,
                              "n_scans": 2, "lone_sides": np.zeros(n, bool) if lone is None else lone})
 
-    a, b = campaign_widening(calipers(0.012 + 0.0008 * r), slice_dbh, r, 5)
-    assert a == pytest.approx(0.012, abs=1e-6) and b == pytest.approx(0.0008, abs=1e-7)
+    w = campaign_widening(calipers(0.012 + 0.0008 * r), slice_dbh, r, 5)
+    assert w.a == pytest.approx(0.012, abs=1e-6) and w.b == pytest.approx(0.0008, abs=1e-7)
+    assert w(np.array([60.0]))[0] == pytest.approx(0.012 + 0.0008 * 60, abs=1e-6)  # a beam: on beyond
     noisy = 0.02 + rng.normal(0, 0.002, n)
     noisy[[2, 9]] += 0.08  # two trees whose slices are far off
-    a, b = campaign_widening(calipers(noisy), slice_dbh, r, 5)
-    assert abs(a + b * 17.5 - 0.02) < 0.004 and b < 0.0005
-    assert campaign_widening(calipers(0.03 - 0.0005 * r), slice_dbh, r, 5)[1] == 0.0  # shrinking: a constant
+    w = campaign_widening(calipers(noisy), slice_dbh, r, 5)
+    assert abs(w(np.array([17.5]))[0] - 0.02) < 0.004 and w.b < 0.0005
+    assert campaign_widening(calipers(0.03 - 0.0005 * r), slice_dbh, r, 5).b == 0.0  # shrinking: a constant
     gaps = slice_dbh.copy()
     gaps[4:] = np.nan  # four trees with a slice
-    assert campaign_widening(calipers(0.02), gaps, r, 5) == (0.0, 0.0)
-    assert campaign_widening(calipers(0.02, lone=np.arange(n) >= 4), slice_dbh, r, 5) == (0.0, 0.0)
-    a, b = campaign_widening(calipers(0.02), gaps, r, 4)  # too few trees for a slope
-    assert a == pytest.approx(0.02) and b == 0.0
+    assert not campaign_widening(calipers(0.02), gaps, r, 5)
+    assert not campaign_widening(calipers(0.02, lone=np.arange(n) >= 4), slice_dbh, r, 5)
+    w = campaign_widening(calipers(0.02), gaps, r, 4)  # too few trees for a slope
+    assert w.a == pytest.approx(0.02) and w.b == 0.0
+
+
+def test_a_constant_widening_is_not_carried_beyond_the_slice_trees():
+    """A constant measured on near trees holds out to the farthest of them; beyond, the farther
+    trees' caliper less cylinder DBH takes over (a splat that widens only near stems: none far
+    away), or, with too few farther trees, the widening falls to none by 1.5 times that range."""
+    rng = np.random.default_rng(5)
+    n = 30
+    r = np.linspace(3.0, 45.0, n)
+    true = rng.uniform(0.15, 0.40, n)
+    near = r < 12.0
+    excess = np.where(near, 0.02, 0.0)  # splats widen the near silhouettes only
+    slice_dbh = np.where(near, true, np.nan)  # only near stems are seen all round
+    cylinders = true + rng.normal(0.0, 0.01, n)
+    cal = pd.DataFrame({"tree": np.arange(n), "caliper_dbh_m": true + excess, "caliper_sd_m": 0.01,
+                        "n_scans": 2, "lone_sides": np.zeros(n, bool)})
+    w = campaign_widening(cal, slice_dbh, r, 5, cylinders)
+    assert w(r[near]) == pytest.approx(0.02)
+    assert abs(w(np.array([20.0, 45.0]))).max() < 0.006 and abs(w.far_m) < 0.006
+    w = campaign_widening(cal, slice_dbh, r, 5)  # no cylinders: tapered
+    rmax = r[near].max()
+    assert w(np.array([rmax]))[0] == pytest.approx(0.02)
+    assert w(np.array([1.25 * rmax]))[0] == pytest.approx(0.01)
+    assert w(np.array([1.5 * rmax, 40.0])) == pytest.approx([0.0, 0.0])

@@ -47,6 +47,7 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.geometry import rot_z, transform_points
+from forestmap_assets.core.mapping.silhouette_widening import Widening, campaign_widening
 from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_dbhs
 from forestmap_assets.core.mapping.stem_slices import (
     MAX_SLOPE,
@@ -366,33 +367,6 @@ def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, 
     return out, w
 
 
-def campaign_widening(calipers: pd.DataFrame, slice_dbh_m: np.ndarray, range_m: np.ndarray,
-                      min_trees: int) -> tuple[float, float]:
-    """How much wider the silhouettes read than the beam's footprint explains, where the campaign
-    names no beam (a renderer's splats, another scanner's footprint), as ``(a, b)``: a DBH
-    widening ``a + b r`` at the edges' range ``r``. Over the trees with a width and a
-    merged-slice DBH (``slice_dbh_m``, by tree row; NaN where the slice saw too little of the
-    circumference; ``range_m`` their edges' median range), caliper less slice DBH: with
-    ``2 min_trees`` such trees over more than 5 m of range, ``b`` the Theil-Sen slope floored at
-    0 and ``a`` the median of the rest; with ``min_trees`` or more, their median and ``b = 0``;
-    else ``(0, 0)``. Rendered surveys: about -0.6 to +1.7 cm, no slope; Sylva's: +1.3 to
-    +2.5 cm plus up to 0.23 cm per metre (results.md "widening")."""
-    whole = calipers[~calipers["lone_sides"].to_numpy(bool)]
-    t = whole["tree"].to_numpy(int)
-    ref, r = slice_dbh_m[t], range_m[t]
-    ok = np.isfinite(ref) & np.isfinite(r)
-    if ok.sum() < max(min_trees, 1):
-        return 0.0, 0.0
-    d, r = whole["caliper_dbh_m"].to_numpy(float)[ok] - ref[ok], r[ok]
-    if ok.sum() >= 2 * min_trees and np.ptp(r) > 5.0:  # robust: a few trees' slices are off
-        i, j = np.triu_indices(len(r), 1)  # Theil-Sen: the median of the pairs' slopes
-        apart = np.abs(r[j] - r[i]) > 1e-9
-        slope = float(np.median((d[j] - d[i])[apart] / (r[j] - r[i])[apart]))
-        slope = max(slope, 0.0)  # a footprint grows with range, or not
-        return float(np.median(d - slope * r)), slope
-    return float(np.median(d)), 0.0
-
-
 def outline_refs(trees: pd.Series, calipers: pd.DataFrame, weight: float, tp) -> np.ndarray:
     """The error of the DBH so far of ``trees`` (rows), which the outline is blended with:
     ``tp.outline_ref_sd_m`` where widths took part (``weight`` > 0), else the cylinders' own
@@ -410,10 +384,10 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
     arguments), blended with the silhouettes' widths when ``tp.calipers`` and the scans' range
     images ``images`` (``EDGE_COLUMNS_NEEDED``) are given, then with one outline fitted to the
     slice and the silhouette sides together (:mod:`.stem_outline`, ``tp.outline_ref_sd_m``).
-    With ``tp.caliper_widening`` "campaign" the edges first lose :func:`campaign_widening`.
-    The fits gain ``caliper_dbh_m, caliper_sd_m, caliper_scans, caliper_widening_m,
-    caliper_widening_per_m`` (and ``outline_dbh_m, outline_sd_m``); a blended tree's
-    ``dbh_note`` says so."""
+    With ``tp.caliper_widening`` "campaign" the edges first lose
+    :func:`~.silhouette_widening.campaign_widening`. The fits gain ``caliper_dbh_m, caliper_sd_m,
+    caliper_scans, caliper_widening_m, caliper_widening_per_m, caliper_widening_far_m`` (and
+    ``outline_dbh_m, outline_sd_m``); a blended tree's ``dbh_note`` says so."""
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
     with_outline = bool(tp.calipers and images and tp.outline_ref_sd_m > 0)
     slices, sensors = slice_points(clouds, poses, stems, tp, gather_half_height(tp) if with_outline else None)
@@ -424,15 +398,16 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
         return out, fits
     edges = tree_edges(images, poses, stems, tp)
     calipers = tree_calipers(images, poses, stems, tp, edges=edges)
-    widening = (0.0, 0.0)
+    widening = Widening()
     if tp.caliper_widening == "campaign" and len(edges):
         edge_range = edges.groupby("tree")["range_m"].median().reindex(range(len(stems))).to_numpy(float)
         widening = campaign_widening(calipers, fits["dbh_slice_m"].to_numpy(float), edge_range,
-                                     tp.caliper_widening_min_trees)
-        if any(widening):
-            edges = edges.assign(h_m=edges["h_m"] - 0.5 * (widening[0] + widening[1] * edges["range_m"]))
+                                     tp.caliper_widening_min_trees, fits["dbh_cylinders_m"].to_numpy(float))
+        if widening:
+            edges = edges.assign(h_m=edges["h_m"] - 0.5 * widening(edges["range_m"].to_numpy(float)))
             calipers = tree_calipers(images, poses, stems, tp, edges=edges)
-    fits["caliper_widening_m"], fits["caliper_widening_per_m"] = widening
+    fits["caliper_widening_m"], fits["caliper_widening_per_m"] = widening.a, widening.b
+    fits["caliper_widening_far_m"] = widening.far_m
     noise = float(np.nanmedian(fits["sigma_m"])) if fits["sigma_m"].notna().any() else float("nan")
     # the calipers' own error: their trees' median sd (the pixels' size: the scanner's step and
     # the ranges), times caliper_sd_factor
