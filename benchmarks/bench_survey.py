@@ -368,19 +368,22 @@ def make_campaign(kind: str, seed: int, args, cache: Path, peer_py: Path | None)
         write_sylva_campaign(root, truth, tilted=kind == "sylvatilt")
         facts = {"points": truth["n_points"], "stem_check_m": truth["stem_check_m"],
                  "source": f"sylva-rs {truth['sylva_rs']}"}
-    elif kind in ("render", "rendercolour", "renderghost"):
+    elif kind in ("render", "rendercolour", "renderghost", "renderwide"):
         import time as _t
 
         from forestmap_assets.sim.cloud_render import render_campaign
 
         t0 = _t.perf_counter()
+        # renderwide: 120 trees on a 70 m plot, the scans 15-30 m apart (stems seen at 20-45 m)
+        plot = {"plot_size": 70.0, "trees": 120} if kind == "renderwide" else {}
         render_campaign(root, seed=seed, scans=args.scans, colour=kind == "rendercolour",
                         source_kwargs={"mixed_range": "blend"} if kind == "renderghost" else None,
-                        progress=lambda msg: print(f"    {msg}", flush=True))
+                        progress=lambda msg: print(f"    {msg}", flush=True), **plot)
         m = {"wall_s": _t.perf_counter() - t0}
         facts = {"points": [ply_vertices(p) for p in sorted((root / "scans").glob("*.ply"))],
                  "source": "forestmap sim/cloud_render.py (realistic stems, 9 source scans"
-                           + {"rendercolour": ", colourised)", "renderghost": ", mixed-pixel ghosts)"}.get(kind, ")")}
+                           + {"rendercolour": ", colourised)", "renderghost": ", mixed-pixel ghosts)",
+                              "renderwide": ", 120 trees on a 70 m plot)"}.get(kind, ")")}
     else:
         stems = ["--stems", "realistic"] if kind == "ownreal" else []
         m = run_measured([forestmap_exe(), "simulate", root, "--scans", args.scans, "--resolution",
@@ -669,7 +672,7 @@ def _ratio(a, b):
 
 def case_name(c: dict) -> str:
     label = {"sylva": "Sylva sim", "sylvatilt": "Sylva unlevelled", "render": "rendered",
-             "rendercolour": "rendered, colour", "renderghost": "rendered, ghosts",
+             "rendercolour": "rendered, colour", "renderghost": "rendered, ghosts", "renderwide": "rendered, 70 m plot",
              "ownreal": "own realistic"}.get(c["kind"], "own sim")
     return f"{label} {c['seed']}"
 
@@ -908,6 +911,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ghost-render-seeds", default="0",
                     help="as --render-seeds, the source scanner's mixed pixels echo both surfaces "
                          "(ghost points trailing the trunks' silhouettes, as real TLS clouds have; 0: none)")
+    ap.add_argument("--wide-render-seeds", default="0",
+                    help="as --render-seeds, 120 trees on a 70 m plot: stems seen 20-45 m away (0: none)")
     ap.add_argument("--render-seeds", default="1",
                     help="surveys rendered inside the registered cloud of an own realistic forest "
                          "(sim/cloud_render.py), same form (0: none)")
@@ -939,6 +944,7 @@ def main(argv=None) -> int:
     plan += [("render", s) for s in (seeds_of(args.render_seeds) if args.render_seeds != "0" else [])]
     plan += [("rendercolour", s) for s in (seeds_of(args.colour_render_seeds) if args.colour_render_seeds != "0" else [])]
     plan += [("renderghost", s) for s in (seeds_of(args.ghost_render_seeds) if args.ghost_render_seeds != "0" else [])]
+    plan += [("renderwide", s) for s in (seeds_of(args.wide_render_seeds) if args.wide_render_seeds != "0" else [])]
     cases = []
     for kind, seed in plan:
         rundir = cache / "runs" / f"{kind}-seed{seed}"
