@@ -22,7 +22,8 @@ Options: ``--seeds N|a,b`` Sylva surveys (default 3), ``--own-seeds`` own-simula
 (default 1, 0 for none), ``--real-seeds`` own surveys with realistic stems (default 0),
 ``--render-seeds`` rendered surveys (default 1), ``--colour-render-seeds`` rendered from a colourised
 cloud (default 0), ``--ghost-render-seeds`` rendered from a cloud with mixed-pixel ghost points
-(default 0), ``--scans`` (6), ``--skip-peer`` (no Sylva: own simulator and forestmap
+(default 0), ``--wide-``, ``--dense-``, ``--few-``, ``--noisy-``, ``--splat-render-seeds`` rendered
+surveys of other kinds (``RENDER_VARIANTS``, default 0), ``--scans`` (6), ``--skip-peer`` (no Sylva: own simulator and forestmap
 only; also what happens, with the error in the section, when Sylva cannot be installed or
 imported), ``--cache DIR`` (keep campaigns, logs and stores; simulated campaigns are reused),
 ``--report-only`` (rebuild the tables from ``--cache``), ``--no-write``.
@@ -62,6 +63,17 @@ GIB = 1024.0**3
 
 
 # ----------------------------------------------------------------------------- child processes
+
+
+# rendered surveys of other kinds (sim/cloud_render.render_campaign options): each has its own
+# --<name>-render-seeds flag; results.md "widening_range" measured one seed of each
+RENDER_VARIANTS = {
+    "renderwide": ("120 trees on a 70 m plot", {"plot_size": 70.0, "trees": 120}),
+    "renderdense": ("120 trees on the 40 m plot", {"trees": 120}),
+    "renderfew": ("a cloud from 4 source scans", {"source_scans": 4}),
+    "rendernoisy": ("1 cm range noise and 12 mm splats", {"range_sigma_m": 0.01, "splat_m": 0.012}),
+    "rendersplat": ("15 mm splats", {"splat_m": 0.015}),
+}
 
 def measure_main(out: str, cmd: list[str]) -> int:
     """``--measure OUT -- CMD...``: run CMD and write its wall time, CPU time and peak RSS (the
@@ -368,14 +380,13 @@ def make_campaign(kind: str, seed: int, args, cache: Path, peer_py: Path | None)
         write_sylva_campaign(root, truth, tilted=kind == "sylvatilt")
         facts = {"points": truth["n_points"], "stem_check_m": truth["stem_check_m"],
                  "source": f"sylva-rs {truth['sylva_rs']}"}
-    elif kind in ("render", "rendercolour", "renderghost", "renderwide"):
+    elif kind in ("render", "rendercolour", "renderghost", *RENDER_VARIANTS):
         import time as _t
 
         from forestmap_assets.sim.cloud_render import render_campaign
 
         t0 = _t.perf_counter()
-        # renderwide: 120 trees on a 70 m plot, the scans 15-30 m apart (stems seen at 20-45 m)
-        plot = {"plot_size": 70.0, "trees": 120} if kind == "renderwide" else {}
+        plot = RENDER_VARIANTS.get(kind, ("", {}))[1]
         render_campaign(root, seed=seed, scans=args.scans, colour=kind == "rendercolour",
                         source_kwargs={"mixed_range": "blend"} if kind == "renderghost" else None,
                         progress=lambda msg: print(f"    {msg}", flush=True), **plot)
@@ -383,7 +394,7 @@ def make_campaign(kind: str, seed: int, args, cache: Path, peer_py: Path | None)
         facts = {"points": [ply_vertices(p) for p in sorted((root / "scans").glob("*.ply"))],
                  "source": "forestmap sim/cloud_render.py (realistic stems, 9 source scans"
                            + {"rendercolour": ", colourised)", "renderghost": ", mixed-pixel ghosts)",
-                              "renderwide": ", 120 trees on a 70 m plot)"}.get(kind, ")")}
+                              **{k: f", {v[0]})" for k, v in RENDER_VARIANTS.items()}}.get(kind, ")")}
     else:
         stems = ["--stems", "realistic"] if kind == "ownreal" else []
         m = run_measured([forestmap_exe(), "simulate", root, "--scans", args.scans, "--resolution",
@@ -672,7 +683,8 @@ def _ratio(a, b):
 
 def case_name(c: dict) -> str:
     label = {"sylva": "Sylva sim", "sylvatilt": "Sylva unlevelled", "render": "rendered",
-             "rendercolour": "rendered, colour", "renderghost": "rendered, ghosts", "renderwide": "rendered, 70 m plot",
+             "rendercolour": "rendered, colour", "renderghost": "rendered, ghosts",
+             **{k: f"rendered, {v[0]}" for k, v in RENDER_VARIANTS.items()},
              "ownreal": "own realistic"}.get(c["kind"], "own sim")
     return f"{label} {c['seed']}"
 
@@ -911,8 +923,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ghost-render-seeds", default="0",
                     help="as --render-seeds, the source scanner's mixed pixels echo both surfaces "
                          "(ghost points trailing the trunks' silhouettes, as real TLS clouds have; 0: none)")
-    ap.add_argument("--wide-render-seeds", default="0",
-                    help="as --render-seeds, 120 trees on a 70 m plot: stems seen 20-45 m away (0: none)")
+    for kind, (what, _) in RENDER_VARIANTS.items():
+        ap.add_argument(f"--{kind[6:]}-render-seeds", default="0", help=f"as --render-seeds, {what} (0: none)")
     ap.add_argument("--render-seeds", default="1",
                     help="surveys rendered inside the registered cloud of an own realistic forest "
                          "(sim/cloud_render.py), same form (0: none)")
@@ -944,7 +956,9 @@ def main(argv=None) -> int:
     plan += [("render", s) for s in (seeds_of(args.render_seeds) if args.render_seeds != "0" else [])]
     plan += [("rendercolour", s) for s in (seeds_of(args.colour_render_seeds) if args.colour_render_seeds != "0" else [])]
     plan += [("renderghost", s) for s in (seeds_of(args.ghost_render_seeds) if args.ghost_render_seeds != "0" else [])]
-    plan += [("renderwide", s) for s in (seeds_of(args.wide_render_seeds) if args.wide_render_seeds != "0" else [])]
+    for kind in RENDER_VARIANTS:
+        seeds = getattr(args, f"{kind[6:]}_render_seeds")
+        plan += [(kind, s) for s in (seeds_of(seeds) if seeds != "0" else [])]
     cases = []
     for kind, seed in plan:
         rundir = cache / "runs" / f"{kind}-seed{seed}"
