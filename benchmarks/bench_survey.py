@@ -23,9 +23,9 @@ Options: ``--seeds N|a,b`` Sylva surveys (default 3), ``--own-seeds`` own-simula
 ``--render-seeds`` rendered surveys (default 1), ``--colour-render-seeds`` rendered from a colourised
 cloud (default 0), ``--ghost-render-seeds`` rendered from a cloud with mixed-pixel ghost points
 (default 0), ``--wide-``, ``--dense-``, ``--few-``, ``--noisy-``, ``--splat-render-seeds`` rendered
-surveys of other kinds (``RENDER_VARIANTS``, default 0), ``--scans`` (6), ``--skip-peer`` (no Sylva: own simulator and forestmap
-only; also what happens, with the error in the section, when Sylva cannot be installed or
-imported), ``--cache DIR`` (keep campaigns, logs and stores; simulated campaigns are reused),
+surveys of other kinds (``RENDER_VARIANTS``, default 0), ``--scans`` (6), ``--skip-peer`` (no
+Sylva: own simulator and forestmap only; also what happens, with the error in the section, when
+Sylva cannot be installed or imported), ``--cache DIR`` (keep campaigns, logs and stores; simulated campaigns are reused),
 ``--report-only`` (rebuild the tables from ``--cache``), ``--no-write``.
 
 Sylva (PyPI ``sylva-rs``) is GPL-3: it is only run, as a separate program in its own venv
@@ -62,9 +62,6 @@ SECTION = "survey"
 GIB = 1024.0**3
 
 
-# ----------------------------------------------------------------------------- child processes
-
-
 # rendered surveys of other kinds (sim/cloud_render.render_campaign options): each has its own
 # --<name>-render-seeds flag; results.md "widening_range" measured one seed of each
 RENDER_VARIANTS = {
@@ -74,6 +71,9 @@ RENDER_VARIANTS = {
     "rendernoisy": ("1 cm range noise and 12 mm splats", {"range_sigma_m": 0.01, "splat_m": 0.012}),
     "rendersplat": ("15 mm splats", {"splat_m": 0.015}),
 }
+
+# ----------------------------------------------------------------------------- child processes
+
 
 def measure_main(out: str, cmd: list[str]) -> int:
     """``--measure OUT -- CMD...``: run CMD and write its wall time, CPU time and peak RSS (the
@@ -386,10 +386,10 @@ def make_campaign(kind: str, seed: int, args, cache: Path, peer_py: Path | None)
         from forestmap_assets.sim.cloud_render import render_campaign
 
         t0 = _t.perf_counter()
-        plot = RENDER_VARIANTS.get(kind, ("", {}))[1]
+        variant = RENDER_VARIANTS.get(kind, ("", {}))[1]
         render_campaign(root, seed=seed, scans=args.scans, colour=kind == "rendercolour",
                         source_kwargs={"mixed_range": "blend"} if kind == "renderghost" else None,
-                        progress=lambda msg: print(f"    {msg}", flush=True), **plot)
+                        progress=lambda msg: print(f"    {msg}", flush=True), **variant)
         m = {"wall_s": _t.perf_counter() - t0}
         facts = {"points": [ply_vertices(p) for p in sorted((root / "scans").glob("*.ply"))],
                  "source": "forestmap sim/cloud_render.py (realistic stems, 9 source scans"

@@ -24,32 +24,31 @@ import pandas as pd
 
 @dataclass(frozen=True)
 class Widening:
-    """A DBH widening against range: the line ``a + b r`` out to ``near_m`` and, when ``far_r``
-    is set, linear between the knots ``(near_m, a + b near_m), (far_r[i], far_w[i])`` beyond it
-    (constant past the last)."""
+    """A DBH widening against range: the line ``a + b r`` out to ``near_m``; beyond it linear
+    from the line's value there to ``far`` at ``far_at_m``, then ``far`` (``near_m`` infinite:
+    the line everywhere)."""
 
     a: float = 0.0
     b: float = 0.0
     near_m: float = np.inf
-    far_r: tuple[float, ...] = ()
-    far_w: tuple[float, ...] = ()
+    far_at_m: float = np.inf
+    far: float = 0.0
 
     def __bool__(self) -> bool:
-        return bool(self.a or self.b or any(self.far_w))
+        return bool(self.a or self.b or self.far)
 
     def __call__(self, range_m: np.ndarray) -> np.ndarray:
         r = np.asarray(range_m, dtype=float)
         w = self.a + self.b * r
-        if not self.far_r:
+        if not np.isfinite(self.near_m):
             return w
-        at = self.a + self.b * self.near_m
-        beyond = np.interp(r, (self.near_m, *self.far_r), (at, *self.far_w))
+        beyond = np.interp(r, (self.near_m, self.far_at_m), (self.a + self.b * self.near_m, self.far))
         return np.where(r > self.near_m, beyond, w)
 
     @property
     def far_m(self) -> float:
         """The widening beyond the slice trees' range (NaN: the line holds everywhere)."""
-        return float(self.far_w[-1]) if self.far_w else float("nan")
+        return self.far if np.isfinite(self.near_m) else float("nan")
 
 
 def campaign_widening(calipers: pd.DataFrame, slice_dbh_m: np.ndarray, range_m: np.ndarray,
@@ -81,5 +80,5 @@ def campaign_widening(calipers: pd.DataFrame, slice_dbh_m: np.ndarray, range_m: 
         cyl = cylinder_dbh_m[t]
         far = (r > near) & np.isfinite(r) & np.isfinite(cyl) & np.isfinite(cal)
         if far.sum() >= max(min_trees, 1):
-            return Widening(a, 0.0, near, (float(r[far].min()),), (float(np.median(cal[far] - cyl[far])),))
-    return Widening(a, 0.0, near, (taper * near,), (0.0,))
+            return Widening(a, 0.0, near, float(r[far].min()), float(np.median(cal[far] - cyl[far])))
+    return Widening(a, 0.0, near, taper * near, 0.0)
