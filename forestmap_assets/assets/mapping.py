@@ -63,6 +63,7 @@ def mapping_assets(campaign: Campaign) -> list:
         objective_scale,
         scale_floor,
         scale_sd,
+        stem_gap,
         take_out,
         widen_links,
     )
@@ -92,12 +93,14 @@ def mapping_assets(campaign: Campaign) -> list:
     @timed
     def optimal_map(context, refined_registrations):
         # every pair partition: branch and bound, refined where it fits better
-        regs = combine_pairs(refined_registrations).get("registrations", pd.DataFrame(columns=["status"]))
+        pairs = combine_pairs(refined_registrations)
+        regs = pairs.get("registrations", pd.DataFrame(columns=["status"]))
         accepted = regs[regs["status"] == "accepted"].reset_index(drop=True)
         mp = params.mapping
         scale, scale_t, scale_n = objective_scale(accepted, mp.objective_scale_t)  # the objectives'
         accepted, sigma_scale = take_out(accepted, scale, scale_t, mp.objective_scale_correct_t)
         accepted = widen_links(accepted, sigma_scale)
+        gap, gap_n = stem_gap(accepted, pairs.get("refinements"))
         levelled = {e.id: e.tilt_sd_deg for e in campaign.scans if e.levelled_from is not None}
         accepted = widen_levelled_links(accepted, levelled, mp.levelling_sd_floor_deg)
         if accepted.empty:  # only the reference scan is placed: it defines the frame
@@ -128,13 +131,15 @@ def mapping_assets(campaign: Campaign) -> list:
         rp = params.refine
         floor = scale_floor(mp.scale_sd_floor, mp.wide_beam_scale_sd_floor, rp.beam_divergence_mrad,
                             rp.symmetric_max_divergence_mrad)
-        poses = scale_sd(with_variance_factors(poses, factors), sigma_scale, floor)
+        poses = scale_sd(with_variance_factors(poses, factors), max(abs(sigma_scale), mp.stem_gap_share * abs(gap)), floor)
         bundle = {"poses": poses, "links": links, "residuals": residuals}
         meta = {
             "objective_scale_mm_per_m": round(1000 * scale, 4),
             "objective_scale_t": round(float(scale_t), 2) if np.isfinite(scale_t) else str(scale_t),
             "objective_scale_links": scale_n,
             "objective_scale_taken_out": bool(scale) and not sigma_scale,
+            "stem_gap_mm_per_m": round(1000 * gap, 4),
+            "stem_gap_links": gap_n,
             "variance_factors": MetadataValue.json([round(float(f), 3) for f in factors]),
             "registered": int(poses["registered"].sum()),
             "unregistered": MetadataValue.json(poses.loc[~poses["registered"], "scan"].tolist()),

@@ -147,6 +147,9 @@ class MappingParams(_Stage):
     # campaign's beam is wide (refine: beam_divergence_mrad > symmetric_max_divergence_mrad)
     scale_sd_floor: float = 0.0
     wide_beam_scale_sd_floor: float = 0.0
+    # the scans' scale sigma at least this share of the stems' and the refined links' difference
+    # per metre (objective_scale.stem_gap; 0: off)
+    stem_gap_share: float = 0.0
     variance_factor_min_dof: int = 0  # sigmas x root of the variance factor > 1 from this many redundant links
     # x, y, z, heading correlation of (b&b, refined) links sharing a scan (0: the thesis; sigmas)
     scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
@@ -299,9 +302,11 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # the own simulator's 3 mrad beam's -0.2 / +0.17 mm/m on realistic / circular stems
         # (results.md "wide_beam_scale"). Variance factor: Sylva 36's loops 1.3 / 1.7 x worse.
         # objective_scale_correct_t: renders' xy errors, median 0.36 -> 0.10 cm ("scale_taken_out")
+        # stem_gap_share: half the stems' and raw points' scale difference ("stem_gap")
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05), "z_residual_sigmas": 5.0,
                     "refined_scan_correlation": (0.1, 0.1, 0.2, 0.25), "objective_scale_correct_t": 6.0,
-                    "scale_sd_floor": 8e-5, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3},
+                    "scale_sd_floor": 8e-5, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3,
+                    "stem_gap_share": 0.5},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         "registration": {"stem_polish": True},

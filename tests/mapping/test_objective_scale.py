@@ -10,6 +10,7 @@ from forestmap_assets.core.mapping.objective_scale import (
     scale_floor,
     scale_sd,
     shorten_links,
+    stem_gap,
     take_out,
     widen_links,
 )
@@ -88,3 +89,16 @@ def test_a_clear_scale_is_taken_out_of_the_refined_links():
     same, sigma = take_out(links, 0.0, 0.0, 6.0)
     assert same is links and sigma == 0.0
     assert shorten_links(links, 0.0) is links
+
+
+def test_the_stems_gap_is_their_mean_lengthening_per_metre_over_the_refined_links():
+    rng = np.random.default_rng(3)
+    links = _links(np.zeros(8), rng)
+    stretch = -0.0004 + rng.normal(0, 0.0001, 8)  # the stems put every baseline shorter
+    refinements = links[["scan", "reference"]].assign(bnb_dx=links.dx * (1 + stretch), bnb_dy=links.dy * (1 + stretch))
+    gap, n = stem_gap(links, refinements)
+    assert n == 8 and abs(gap - stretch.mean()) < 1e-12
+    # links kept at their branch-and-bound pose do not count; too few refined links give none
+    links.loc[:5, "refined"] = False
+    assert stem_gap(links, refinements) == (0.0, 2)
+    assert stem_gap(links, None) == (0.0, 0)

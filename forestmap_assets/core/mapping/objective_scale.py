@@ -18,7 +18,18 @@ common to all links counts: per metre of baseline over the refined links, the me
 mean is at least ``t_min`` standard errors from zero, else none (:func:`objective_scale`). Each
 refined link's sigma along its baseline then takes ``|s| L`` (:func:`widen_links`) and each
 scan's x, y sigma the network's scale about the reference, ``|s| |x|``, ``|s| |y|``
-(:func:`scale_sd`)."""
+(:func:`scale_sd`).
+
+A second, independent estimate of the network's scale is in the branch-and-bound poses: the
+stems' axes, not the raw points. Neither is free of bias (renders: the stems' baselines 0.1-0.3
+mm/m shorter than the truth; Sylva's simulator 0.2 mm/m longer; the own 3 mrad beam 0.5 mm/m
+shorter), but where the raw points' scale is off by much, the two part by much: renders with 12
+mm splats, the refined links (scale not taken out) +0.96 mm/m, the stems' -0.17 mm/m. So half
+their mean difference per metre over the refined links (:func:`stem_gap`,
+``mapping.stem_gap_share``) is a floor of the scans' scale sigma: error / sd x, y on renders with
+1 cm noise and 12 mm splats 2.13 / 2.18 -> 0.97 / 0.95, with 12 mm splats 1.95 / 2.66 -> 1.23 /
+1.53; Sylva 44-79 0.93 / 0.99 -> 0.87 / 0.91, own realistic 0.97 / 1.09 -> 0.93 / 1.04, renders
+0.87 / 0.80 -> 0.83 / 0.77 (117 stored surveys; results.md "stem_gap")."""
 
 from __future__ import annotations
 
@@ -80,6 +91,23 @@ def take_out(links: pd.DataFrame, scale: float, t: float, correct_t: float) -> t
     if scale and abs(t) >= correct_t:
         return shorten_links(links, scale), 0.0
     return links, scale
+
+
+def stem_gap(links: pd.DataFrame, refinements: pd.DataFrame | None, min_links: int = 3) -> tuple[float, int]:
+    """``(gap, n)``: the mean over the ``n`` refined links (baseline over 0.5 m) of how much
+    longer, per metre, the branch-and-bound pose (``refinements``' ``bnb_dx, bnb_dy``) puts the
+    baseline than the link's own ``dx, dy``; 0 with fewer than ``min_links`` such links."""
+    if refinements is None or refinements.empty or "refined" not in links or links.empty:
+        return 0.0, 0
+    bnb = refinements[["scan", "reference", "bnb_dx", "bnb_dy"]].drop_duplicates(["scan", "reference"])
+    m = links[links["refined"].to_numpy(bool)].merge(bnb, on=["scan", "reference"])
+    dx, dy = m["dx"].to_numpy(float), m["dy"].to_numpy(float)
+    length2 = dx * dx + dy * dy
+    ok = (length2 > 0.25) & np.isfinite(m["bnb_dx"].to_numpy(float))
+    if int(ok.sum()) < max(min_links, 1):
+        return 0.0, int(ok.sum())
+    gap = ((m["bnb_dx"].to_numpy(float) - dx) * dx + (m["bnb_dy"].to_numpy(float) - dy) * dy)[ok] / length2[ok]
+    return float(gap.mean()), int(ok.sum())
 
 
 def widen_links(links: pd.DataFrame, scale: float) -> pd.DataFrame:
