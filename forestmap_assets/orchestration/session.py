@@ -408,11 +408,15 @@ def _load_worker(base: tuple) -> None:
 
 def _warm_worker(base: tuple) -> None:
     """A worker's first task (:meth:`Session.start_workers`): the campaign, its definitions, the
-    instance, and the libraries of the per-scan stages."""
+    instance, the libraries of the per-scan stages and their compiled kernels (from numba's disk
+    cache, :mod:`.kernel_cache`)."""
     import open3d  # noqa: F401
     import scipy.spatial  # noqa: F401
 
+    from forestmap_assets.orchestration.kernel_cache import load_cached_kernels
+
     _load_worker(base)
+    load_cached_kernels()
 
 
 def _partition_worker(base: tuple, kind: str, part: str | None, stages: list[str], concurrent_runs: int):
