@@ -369,8 +369,11 @@ def _init_worker(queue, threads: int = 0, environ: dict | None = None) -> None:
     """A forked worker starts its own forkserver for Dagster's multiprocess executor: the one it
     inherits (started by an earlier campaign-level run) is its parent's child, not its own.
     ``threads``: the numba threads of a worker that computes its steps itself (in_process);
-    ``environ``: the session's environment (a fork server keeps the one it started with)."""
+    ``environ``: the session's environment (a fork server keeps the one it started with). Each
+    worker then loads the compiled kernels numba has cached (:mod:`.kernel_cache`)."""
     import multiprocessing.forkserver as forkserver
+
+    from forestmap_assets.orchestration.kernel_cache import load_cached_kernels
 
     global _QUEUE
     _QUEUE = queue
@@ -388,6 +391,7 @@ def _init_worker(queue, threads: int = 0, environ: dict | None = None) -> None:
     server._forkserver_address = server._forkserver_alive_fd = server._forkserver_pid = None
     server._inherited_fds = None
     server._lock = threading.Lock()
+    load_cached_kernels()  # in every worker, before its first task (numba's threads may start)
 
 
 def _drain(queue, progress: Progress) -> None:
@@ -408,15 +412,11 @@ def _load_worker(base: tuple) -> None:
 
 def _warm_worker(base: tuple) -> None:
     """A worker's first task (:meth:`Session.start_workers`): the campaign, its definitions, the
-    instance, the libraries of the per-scan stages and their compiled kernels (from numba's disk
-    cache, :mod:`.kernel_cache`)."""
+    instance, and the libraries of the per-scan stages."""
     import open3d  # noqa: F401
     import scipy.spatial  # noqa: F401
 
-    from forestmap_assets.orchestration.kernel_cache import load_cached_kernels
-
     _load_worker(base)
-    load_cached_kernels()
 
 
 def _partition_worker(base: tuple, kind: str, part: str | None, stages: list[str], concurrent_runs: int):
