@@ -75,6 +75,15 @@ def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
     return xyz, hue
 
 
+def _step_rad(table) -> float:
+    """A stored ``range_images`` table's azimuth step (rad; NaN when its metadata has none)."""
+    import json
+
+    raw = (table.schema.metadata or {}).get(b"azimuth_deg")
+    az = np.asarray(json.loads(raw), dtype=np.float64) if raw else np.zeros(0)
+    return float(np.radians(np.median(np.abs(np.diff(az))))) if az.size > 1 else float("nan")
+
+
 def registration_assets(campaign: Campaign) -> list:
     from forestmap_assets.core.registration.candidates import candidate_pairs as make_candidates
     from forestmap_assets.core.registration.pair_registrations import register_candidates
@@ -228,7 +237,8 @@ def registration_assets(campaign: Campaign) -> list:
         from forestmap_assets.core.registration.two_way import RefineCloud
 
         xyz, hue = _cloud(range_images)
-        table = RefineCloud.from_points(xyz, refine_settings(campaign)).to_table(colour=hue is not None)
+        table = RefineCloud.from_points(xyz, refine_settings(campaign), _step_rad(range_images)).to_table(
+            colour=hue is not None)
         meta = {"data_points": int((table["role"] == "data").sum()),
                 "model_points": int((table["role"] == "model").sum()), "colour": hue is not None}
         return Output(table, metadata=meta, data_version=data_version(table))

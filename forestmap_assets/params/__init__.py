@@ -311,8 +311,10 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         "registration": {"stem_polish": True},
         # (inferred) colour scans refined both ways too: HICP took 13 s a pair and placed scans
-        # worse (own realistic with colour, 70-72; results.md "colour_refine")
-        "refine": {"method": "point_to_plane"},
+        # worse (own realistic with colour, 70-72; results.md "colour_refine"); renders' splats
+        # taken back where a pair fits better so (results.md "splat_dilation")
+        "refine": {"method": "point_to_plane",
+                   "splat_candidates_m": (0.003, 0.005, 0.007, 0.009, 0.011, 0.013, 0.015, 0.018, 0.022)},
         # (inferred) no named beam: DBH RMSE renders 1.75 -> 1.03, Sylva 0.53 -> 0.51 (results.md "widening")
         "trees": {"calipers": True, "caliper_widening": "campaign"},
     },

@@ -118,6 +118,15 @@ class RefineSettings:
     # ... when the two agree within this many sigmas of their difference; else the refined one
     # (a branch-and-bound heading off by more than its sigma says is what the refinement is for)
     heading_agree_sigmas: float = 3.0
+    # splat radii (m) a refined pair tries taking back (core/registration/splat_widening.py): scans
+    # rendered inside a registered cloud have every surface widened by their splats; the one that
+    # fits the pair best by splat_min_gain (relative) is taken out and the pair refined again
+    splat_candidates_m: tuple[float, ...] = ()
+    splat_min_gain: float = 0.1
+    # such a pair's z sigma floor (m): this (1/m) times the splat radius squared instead of
+    # two_way_sd_floor's 1 mm (0.25 mm for 7 mm splats, 0.72 mm for 12 mm): the links' z errors
+    # were 0.13-0.18 mm RMS with 7 mm splats, 0.47 mm with 12 mm (results.md "splat_taken_back")
+    splat_sd_z_per_m: float = 5.0
 
     @property
     def symmetric_pairs(self) -> bool:

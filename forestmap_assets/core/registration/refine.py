@@ -43,6 +43,11 @@ the two range images:
    campaigns, 1.65-2.06 in x, y at half resolution): 1.8 was fitted on the quarter-resolution
    seeds and checked on the half-resolution ones (benchmarks/results.md, mapping section).
 
+6. with ``splat_candidates_m`` (the forest preset), a refined pair whose surfaces come closer by
+   ``splat_min_gain`` once a renderer's splat widening is taken back is refined again on the
+   corrected points (:mod:`~.splat_widening`), its z sigma floored at ``splat_sd_z_per_m`` times
+   the splat radius squared.
+
 All choices are (inferred); they are fields of :class:`RefineSettings`.
 """
 
@@ -50,7 +55,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import pandas as pd
@@ -71,6 +76,7 @@ from forestmap_assets.core.registration.point_to_plane import (
     plane_residuals,
     point_to_plane_4dof,
 )
+from forestmap_assets.core.registration.splat_widening import choose_splat, corrected
 from forestmap_assets.core.registration.two_way import (
     RefineCloud,
     crop_mask,
@@ -87,7 +93,7 @@ REFINE_COLUMNS = [
     "ref_dheading_deg", "ref_sd_x", "ref_sd_y", "ref_sd_z", "ref_sd_heading_deg", "fit_bnb_m",
     "fit_refined_m", "pairs_bnb", "pairs_refined", "iterations", "converged", "at_box_edge",
     "hue_offset", "n_data", "n_model", "moved_xy_m", "moved_z_m", "moved_heading_deg", "disagree_xy_m",
-    "disagree_z_m", "disagree_heading_deg", "objective_spread_m", "seconds",
+    "disagree_z_m", "disagree_heading_deg", "objective_spread_m", "splat_m", "splat_fit_gain", "seconds",
 ]
 
 
@@ -259,6 +265,14 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
     row.update({f"bnb_{k}": v for k, v in zip(POSE, pose, strict=True)})
     row.update({f"bnb_{k}": v for k, v in zip(SD, np.nan_to_num(np.asarray(sd, dtype=np.float64)), strict=True)})
     res = two_way_refine(scan, ref, pose, settings)
+    splat, gain = (choose_splat(scan, ref, res["pose"], settings.splat_candidates_m, radius_m=settings.two_way_radii_m[-1],
+                                normal_k=settings.normal_k, min_gain=settings.splat_min_gain)
+                   if res["used"] and settings.splat_candidates_m else (0.0, np.nan))
+    if splat > 0:  # refined again from the branch-and-bound pose, the renderer's widening taken back
+        floor = list(settings.two_way_sd_floor)
+        floor[2] = settings.splat_sd_z_per_m * splat**2  # its z no longer rests on raised ground
+        res = two_way_refine(corrected(scan, splat), corrected(ref, splat), pose,
+                             replace(settings, two_way_sd_floor=tuple(floor)))
     if res["used"] and settings.heading_from == "both":
         res["pose"], res["sd"] = fuse_heading(res["pose"], res["sd"], pose, np.asarray(sd, dtype=np.float64),
                                               res["centre"], settings.heading_agree_sigmas)
@@ -272,7 +286,7 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
                moved_xy_m=float(np.hypot(*(new[:2] - pose[:2]))), moved_z_m=float(new[2] - pose[2]),
                moved_heading_deg=float(wrap_deg(new[3] - pose[3])), disagree_xy_m=float(np.hypot(dis[0], dis[1])),
                disagree_z_m=float(dis[2]), disagree_heading_deg=float(dis[3]),
-               objective_spread_m=float(res["spread_along"]))
+               objective_spread_m=float(res["spread_along"]), splat_m=splat, splat_fit_gain=gain)
     row["seconds"] = time.perf_counter() - t0
     return row
 

@@ -73,6 +73,8 @@ class RefineCloud:
     model: np.ndarray
     normals: np.ndarray
     data_normals: np.ndarray | None = None  # of the data points (symmetric objective)
+    step_rad: float = float("nan")  # the scan's angular step (splat_widening); NaN: not known
+    cache: dict = field(default_factory=dict, repr=False, compare=False)  # what a worker keeps for next pairs
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
     _box: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
@@ -96,26 +98,27 @@ class RefineCloud:
         return self
 
     @classmethod
-    def from_points(cls, xyz: np.ndarray, s: RefineSettings) -> RefineCloud:
+    def from_points(cls, xyz: np.ndarray, s: RefineSettings, step_rad: float = float("nan")) -> RefineCloud:
         p = np.asarray(xyz, dtype=np.float64)
         p = p[crop_mask(p, s)]
         model = p[voxel_subsample(p, s.two_way_model_voxel_m)] if s.two_way_model_voxel_m and len(p) else p
         data = p[voxel_subsample(p, s.data_voxel_m)] if s.data_voxel_m and len(p) else p
         if s.max_data_points and len(data) > s.max_data_points:  # a fixed, seeded thinning
             data = data[np.sort(np.random.default_rng(0).choice(len(data), s.max_data_points, replace=False))]
-        cloud = cls(data=data, model=model, normals=sensor_normals(model, s.normal_k))
+        cloud = cls(data=data, model=model, normals=sensor_normals(model, s.normal_k), step_rad=float(step_rad))
         return cloud.with_data_normals(s.normal_k) if s.symmetric_pairs else cloud
 
     def to_table(self, colour: bool = False) -> pd.DataFrame:
         """One row per point: ``x, y, z``, ``nx, ny, nz`` (NaN for data points without normals),
         ``role`` ``data`` or ``model``; ``colour``: whether the scan has colour (the pair's
-        method depends on it)."""
+        method depends on it); ``step_rad``: the scan's angular step."""
         n = np.full((len(self.data), 3), np.nan) if self.data_normals is None else self.data_normals
         xyz = np.vstack([self.data, self.model])
         normals = np.vstack([n, self.normals])
         return pd.DataFrame({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "nx": normals[:, 0],
                              "ny": normals[:, 1], "nz": normals[:, 2],
-                             "role": _roles(len(self.data), len(self.model)), "colour": bool(colour)})
+                             "role": _roles(len(self.data), len(self.model)), "colour": bool(colour),
+                             "step_rad": float(self.step_rad)})
 
     @classmethod
     def from_table(cls, table: pd.DataFrame) -> RefineCloud:
@@ -123,7 +126,9 @@ class RefineCloud:
         xyz = table[["x", "y", "z"]].to_numpy(np.float64)
         normals = table[["nx", "ny", "nz"]].to_numpy(np.float64)
         data_normals = normals[~model] if np.isfinite(normals[~model]).any() else None
-        return cls(data=xyz[~model], model=xyz[model], normals=normals[model], data_normals=data_normals)
+        step = float(table["step_rad"].iloc[0]) if "step_rad" in table and len(table) else float("nan")
+        return cls(data=xyz[~model], model=xyz[model], normals=normals[model], data_normals=data_normals,
+                   step_rad=step)
 
 
 def _roles(n_data: int, n_model: int) -> pd.Series:
