@@ -22,7 +22,7 @@ Options: ``--seeds N|a,b`` Sylva surveys (default 3), ``--own-seeds`` own-simula
 (default 1, 0 for none), ``--real-seeds`` own surveys with realistic stems (default 0),
 ``--render-seeds`` rendered surveys (default 1), ``--colour-render-seeds`` rendered from a colourised
 cloud (default 0), ``--ghost-render-seeds`` rendered from a cloud with mixed-pixel ghost points
-(default 0), ``--wide-``, ``--dense-``, ``--few-``, ``--noisy-``, ``--splat-render-seeds`` rendered
+(default 0), ``--wide-``, ``--dense-``, ``--few-``, ``--noisy-``, ``--splat-``, ``--splat12-render-seeds`` rendered
 surveys of other kinds (``RENDER_VARIANTS``, default 0), ``--scans`` (6), ``--skip-peer`` (no
 Sylva: own simulator and forestmap only; also what happens, with the error in the section, when
 Sylva cannot be installed or imported), ``--cache DIR`` (keep campaigns, logs and stores; simulated campaigns are reused),
@@ -70,6 +70,7 @@ RENDER_VARIANTS = {
     "renderfew": ("a cloud from 4 source scans", {"source_scans": 4}),
     "rendernoisy": ("1 cm range noise and 12 mm splats", {"range_sigma_m": 0.01, "splat_m": 0.012}),
     "rendersplat": ("15 mm splats", {"splat_m": 0.015}),
+    "rendersplat12": ("12 mm splats", {"splat_m": 0.012}),
 }
 
 # ----------------------------------------------------------------------------- child processes
