@@ -75,15 +75,6 @@ def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
     return xyz, hue
 
 
-def _step_rad(table) -> float:
-    """A stored ``range_images`` table's azimuth step (rad; NaN when its metadata has none)."""
-    import json
-
-    raw = (table.schema.metadata or {}).get(b"azimuth_deg")
-    az = np.asarray(json.loads(raw), dtype=np.float64) if raw else np.zeros(0)
-    return float(np.radians(np.median(np.abs(np.diff(az))))) if az.size > 1 else float("nan")
-
-
 def registration_assets(campaign: Campaign) -> list:
     from forestmap_assets.core.registration.candidates import candidate_pairs as make_candidates
     from forestmap_assets.core.registration.pair_registrations import register_candidates
@@ -234,11 +225,12 @@ def registration_assets(campaign: Campaign) -> list:
     )
     @timed
     def refine_clouds(context, range_images):
+        from forestmap_assets.core.features.range_image import table_azimuth_step
         from forestmap_assets.core.registration.two_way import RefineCloud
 
         xyz, hue = _cloud(range_images)
-        table = RefineCloud.from_points(xyz, refine_settings(campaign), _step_rad(range_images)).to_table(
-            colour=hue is not None)
+        step_rad = table_azimuth_step(range_images)[0]
+        table = RefineCloud.from_points(xyz, refine_settings(campaign), step_rad).to_table(colour=hue is not None)
         meta = {"data_points": int((table["role"] == "data").sum()),
                 "model_points": int((table["role"] == "model").sum()), "colour": hue is not None}
         return Output(table, metadata=meta, data_version=data_version(table))

@@ -5,9 +5,9 @@ first call, 5-15 ms a signature. A worker's first scan paid that for every kerne
 stages (about 0.25 s in the range image's projection alone), so it took 0.5-1.5 s longer than the
 next. :func:`load_cached_kernels` loads, for every kernel module (``_*_kernels.py``), the
 signatures that the cache holds for the current code and machine, and nothing else: it never
-compiles. A worker calls it in its first task, before any scan is due
-(:func:`~.session._warm_worker`), after its numba threads have started (a parallel kernel
-starts them when it is loaded, which a fork server must not do).
+compiles. Each worker calls it as it starts (:func:`~.session._init_worker`), after its numba
+threads have started (a parallel kernel starts them when it is loaded, which a fork server
+must not do); as a first task it could go twice to one worker and never to the other.
 
 It reads numba's cache index through numba internals (0.6x): where they differ, nothing is
 loaded and the first call of each kernel loads it, as before."""

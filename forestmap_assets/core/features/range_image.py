@@ -42,6 +42,15 @@ def _forget_decoded(ref: weakref.ref) -> None:
         _DECODED.clear()
 
 
+def table_azimuth_step(table: pa.Table) -> tuple[float, int, int]:
+    """Azimuth step (rad; NaN with fewer than 2 columns), column count and column direction (+1:
+    azimuth grows with the column) of a stored range image (its ``azimuth_deg`` metadata)."""
+    az = np.asarray(json.loads((table.schema.metadata or {})[b"azimuth_deg"]), np.float64)
+    if az.size < 2:
+        return float("nan"), int(az.size), 1
+    return float(np.radians(np.median(np.abs(np.diff(az))))), int(az.size), 1 if az[-1] >= az[0] else -1
+
+
 def spherical_to_xyz(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: np.ndarray) -> np.ndarray:
     """Sensor-frame points (rows, cols, 3) of an organised range image; NaN where no return."""
     az = np.radians(np.asarray(azimuth_deg, dtype=np.float64))[None, :]

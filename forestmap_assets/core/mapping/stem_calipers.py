@@ -38,7 +38,6 @@ section "DBH from silhouette widths".
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
@@ -46,6 +45,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from forestmap_assets.core.features.range_image import table_azimuth_step
 from forestmap_assets.core.geometry import rot_z, transform_points
 from forestmap_assets.core.mapping.silhouette_widening import Widening, campaign_widening
 from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_dbhs
@@ -69,15 +69,6 @@ CALIPER_COLUMNS = ["tree", "caliper_dbh_m", "caliper_sd_m", "n_scans", "lone_sid
 MAX_LOOK_PIXELS = 64
 
 
-def _azimuth_step(tbl: pa.Table) -> tuple[float, int, int]:
-    """Azimuth step (rad), column count and column direction (+1: azimuth grows with the
-    column) of a stored range image (its ``azimuth_deg`` metadata)."""
-    az = np.asarray(json.loads((tbl.schema.metadata or {})[b"azimuth_deg"]), np.float64)
-    if az.size < 2:
-        return float("nan"), int(az.size), 1
-    return float(np.radians(np.median(np.abs(np.diff(az))))), int(az.size), 1 if az[-1] >= az[0] else -1
-
-
 def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, half_height_m: float,
                      reach_m: np.ndarray, beam_exit_m: float, beam_divergence_rad: float,
                      edge_step_m: float = 0.3, look_m: float = 0.3, min_pixels: int = 3,
@@ -89,7 +80,7 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
     that pass step 1 of the module docstring. ``candidates``: the only rows of ``tbl`` that may
     lie in a slice (:class:`~.stem_slices.StemCells`); None: all."""
     empty = pd.DataFrame({c: pd.Series(dtype="float64") for c in EDGE_COLUMNS if c != "scan"})
-    step, n_cols, col_dir = _azimuth_step(tbl)
+    step, n_cols, col_dir = table_azimuth_step(tbl)
     if not len(stems) or tbl.num_rows == 0 or not np.isfinite(step) or step <= 0:
         return empty
     row, col = tbl.column("row").to_numpy(), tbl.column("col").to_numpy()

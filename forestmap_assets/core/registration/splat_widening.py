@@ -57,30 +57,14 @@ class Widened:
         self.rd, self.ud = lateral(data, data_normals)
         self.rm, self.um = lateral(model, normals)
 
+    def _back(self, p, rng, u, splat_m: float, idx) -> np.ndarray:
+        return p[idx] - widening(rng[idx], splat_m, self.step_rad)[:, None] * u[idx]
+
     def data_at(self, splat_m: float, idx=slice(None)) -> np.ndarray:
-        return self.data[idx] - widening(self.rd[idx], splat_m, self.step_rad)[:, None] * self.ud[idx]
+        return self._back(self.data, self.rd, self.ud, splat_m, idx)
 
     def model_at(self, splat_m: float, idx=slice(None)) -> np.ndarray:
-        return self.model[idx] - widening(self.rm[idx], splat_m, self.step_rad)[:, None] * self.um[idx]
-
-
-def one_way_fit(data, data_normals, w_data: Widened, tree, normals, w_model: Widened, pose,
-                splats, radius_m: float, max_points: int) -> np.ndarray:
-    """Mean |point-to-plane distance| (m) of (at most ``max_points``) data points moved by
-    ``pose`` onto the model, for each splat radius in ``splats``: pairs found on the raw points
-    (symmetric normals), distances between the points corrected for that radius."""
-    r, t = pose4_to_matrix(pose)
-    n = len(data)
-    idx = np.arange(n) if n <= max_points else np.sort(np.random.default_rng(0).choice(n, max_points, replace=False))
-    ok, j, nv = plane_pairs(tree, normals, data[idx] @ r.T + t, radius_m, data_normals[idx] @ r.T)
-    if not ok.any():
-        return np.full(len(splats), np.nan)
-    sel = idx[ok]
-    out = []
-    for s in splats:
-        moved = w_data.data_at(s, sel) @ r.T + t
-        out.append(float(np.abs((nv * (w_model.model_at(s, j) - moved)).sum(axis=1)).mean()))
-    return np.array(out)
+        return self._back(self.model, self.rm, self.um, splat_m, idx)
 
 
 def _widened(cloud: RefineCloud) -> Widened:
@@ -106,6 +90,28 @@ def corrected(cloud: RefineCloud, splat_m: float) -> RefineCloud:
     return got
 
 
+def one_way_fit(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, splats, radius_m: float,
+                max_points: int) -> np.ndarray:
+    """Mean |point-to-plane distance| (m) of (at most ``max_points``) data points of
+    ``data_cloud`` moved by ``pose`` onto ``model_cloud``'s model, for each splat radius in
+    ``splats``: pairs found on the raw points (symmetric normals), distances between the points
+    corrected for that radius."""
+    w_data, w_model = _widened(data_cloud), _widened(model_cloud)
+    r, t = pose4_to_matrix(pose)
+    n = len(data_cloud.data)
+    idx = np.arange(n) if n <= max_points else np.sort(np.random.default_rng(0).choice(n, max_points, replace=False))
+    ok, j, nv = plane_pairs(model_cloud.tree, model_cloud.normals, data_cloud.data[idx] @ r.T + t, radius_m,
+                            data_cloud.data_normals[idx] @ r.T)
+    if not ok.any():
+        return np.full(len(splats), np.nan)
+    sel = idx[ok]
+    out = []
+    for s in splats:
+        moved = w_data.data_at(s, sel) @ r.T + t
+        out.append(float(np.abs((nv * (w_model.model_at(s, j) - moved)).sum(axis=1)).mean()))
+    return np.array(out)
+
+
 def choose_splat(scan: RefineCloud, ref: RefineCloud, pose, candidates, *, radius_m: float, normal_k: int,
                  min_gain: float, max_points: int = 4000) -> tuple[float, float]:
     """``(splat_m, gain)``: the candidate splat radius whose correction fits the pair best at
@@ -115,10 +121,8 @@ def choose_splat(scan: RefineCloud, ref: RefineCloud, pose, candidates, *, radiu
         return 0.0, 0.0
     splats = np.r_[0.0, np.asarray(candidates, dtype=np.float64)]
     scan, ref = scan.with_data_normals(normal_k), ref.with_data_normals(normal_k)
-    fwd = one_way_fit(scan.data, scan.data_normals, _widened(scan), ref.tree, ref.normals, _widened(ref), pose,
-                      splats, radius_m, max_points)
-    bwd = one_way_fit(ref.data, ref.data_normals, _widened(ref), scan.tree, scan.normals, _widened(scan),
-                      invert_pose(pose), splats, radius_m, max_points)
+    fwd = one_way_fit(scan, ref, pose, splats, radius_m, max_points)
+    bwd = one_way_fit(ref, scan, invert_pose(pose), splats, radius_m, max_points)
     fit = 0.5 * (fwd + bwd)
     if not np.isfinite(fit).all() or fit[0] <= 0:
         return 0.0, 0.0
