@@ -71,7 +71,7 @@ def test_outline_blend_weights_by_its_own_sd():
     sides = sides.assign(w=tp.outline_side_weight * _side_weights(sides, tp.caliper_width_sd_m))
     fitted = outline_dbhs(stems, slices, sensors, sides, tp)
     assert fitted["tree"].tolist() == [0]
-    assert abs(fitted["outline_dbh_m"].iat[0] - 2 * R) < 0.006
+    assert abs(fitted["outline_dbh_m"].iat[0] - 2 * R) < 0.008  # one-sided ellipse: +0.2-0.5 cm
     trees = pd.DataFrame({"tree_id": [1, 2], "dbh_m": [0.30, 0.20], "dbh_note": ["", ""]})
     fits = pd.DataFrame({"tree_id": [1, 2]})
     out, fits = blend_outline(trees, fits, fitted, tp.outline_ref_sd_m)

@@ -287,6 +287,33 @@ def test_a_near_scans_heavy_small_cylinders_do_not_set_the_median_alone():
     assert trees["dbh_m"].iloc[0] == pytest.approx(2 * np.average([0.096, 0.093], weights=w))
 
 
+def _seed132_stem(t_radius=(0.185, 0.168), with_t=True):
+    """Own realistic seed 132's 35.4 cm stem: scan Q 11 m away saw a 6 cm arc from 1.5 m up,
+    scan R 17 m away the flared butt (0.1-0.8 m) and the stem above 3 m, scan T 26 m away the
+    stem from 2 m up. {scan: [(z0, z1, r0, r1, n_circles)]} above a flat ground."""
+    seen = {"Q": (11.05, [(1.54, 2.89, 0.0575, 0.068, 62)]),
+            "R": (16.8, [(0.13, 0.82, 0.198, 0.199, 26), (3.10, 5.12, 0.168, 0.171, 59)])}
+    if with_t:
+        seen["T"] = (25.8, [(2.03, 3.24, *t_radius, 25)])
+    per_scan = {sid: pd.DataFrame([_cyl(i, (rng, 0.0, 0.0), (0.0, 0.0), r0, r1, z0, z1, n=n)
+                                   for i, (z0, z1, r0, r1, n) in enumerate(cyls)])
+                for sid, (rng, cyls) in seen.items()}
+    return cylinders_to_global(per_scan, {sid: (-v[0], 0.0, 0.0, 0.0) for sid, v in seen.items()})
+
+
+def test_of_two_scans_near_breast_height_a_partial_arc_gives_way():
+    """Two cylinders of two scans near breast height, r 6 cm and 20 cm: the one under 0.7 of
+    the median over three or more scans within 2 m (cones continued) is left out. Where the
+    third scan also reads small, or no third scan is there, both stay."""
+    grid = SimpleNamespace(z=np.zeros((100, 100)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    trees, _ = merge_trees(_seed132_stem(), grid)
+    assert trees["dbh_m"].iloc[0] == pytest.approx(0.397, abs=0.002)  # the butt cylinder's end
+    both = merge_trees(_seed132_stem(), grid, small_share=None)[0]["dbh_m"].iloc[0]
+    assert both < 0.2
+    assert merge_trees(_seed132_stem(t_radius=(0.07, 0.07)), grid)[0]["dbh_m"].iloc[0] == pytest.approx(both)
+    assert merge_trees(_seed132_stem(with_t=False), grid)[0]["dbh_m"].iloc[0] == pytest.approx(both)
+
+
 def test_a_narrow_beam_lets_far_cylinders_give_the_dbh():
     """Sylva 41: a 48.6 cm stem read 41.4 cm from the one cylinder within 20 m, where four from
     19-30 m read 46-50 cm. The near rule's 20 m holds for the own simulator's 42 mm + 3 mrad
