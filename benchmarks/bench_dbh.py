@@ -32,6 +32,7 @@ def tree_lists(root: Path) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd
     silhouettes' widths, and the last one's fits."""
     from forestmap_assets.access import load_asset
     from forestmap_assets.core.features.elevation import elevation_from_table
+    from forestmap_assets.core.mapping.slice_splats import splat_steps
     from forestmap_assets.core.mapping.stem_calipers import tree_dbh
     from forestmap_assets.core.mapping.trees import beam_options, merge_trees
     from forestmap_assets.io.campaign import load_campaign
@@ -50,7 +51,8 @@ def tree_lists(root: Path) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd
         images[sid] = image.to_table()
     sliced, _ = tree_dbh(cylinders, im["cylinders"], tree_of, clouds, poses, tp.model_copy(update={"calipers": False}))
     blended, fits = tree_dbh(cylinders, im["cylinders"], tree_of, clouds, poses,
-                             tp.model_copy(update={"calipers": True}), images=images)
+                             tp.model_copy(update={"calipers": True}), images=images,
+                             splats=splat_steps(poses, images))
     return cylinders, sliced, blended, fits
 
 

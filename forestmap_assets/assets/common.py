@@ -38,7 +38,7 @@ CODE_VERSIONS: dict[str, str] = {
     "pairwise_registrations": "4",
     "refined_registrations": "7",
     "retry_pairs": "1",
-    "optimal_map": "6",
+    "optimal_map": "7",
     "residual_checks": "1",
     "scan_tilts": "1",
     "integrated_map": "2",

@@ -69,6 +69,7 @@ def mapping_assets(campaign: Campaign) -> list:
     )
     from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
     from forestmap_assets.core.mapping.residuals import variance_factors, with_variance_factors
+    from forestmap_assets.core.mapping.slice_splats import scan_splats
     from forestmap_assets.core.mapping.trees import beam_options, cylinders_to_global, merge_trees
 
     params = campaign.params
@@ -132,6 +133,8 @@ def mapping_assets(campaign: Campaign) -> list:
         floor = scale_floor(mp.scale_sd_floor, mp.wide_beam_scale_sd_floor, rp.beam_divergence_mrad,
                             rp.symmetric_max_divergence_mrad)
         poses = scale_sd(with_variance_factors(poses, factors), max(abs(sigma_scale), mp.stem_gap_share * abs(gap)), floor)
+        splats = scan_splats(pairs.get("refinements"))  # the tree list takes them back from the slices
+        poses["splat_m"] = poses["scan"].astype(str).map(splats).fillna(0.0).astype(float)
         bundle = {"poses": poses, "links": links, "residuals": residuals}
         meta = {
             "objective_scale_mm_per_m": round(1000 * scale, 4),
@@ -281,12 +284,14 @@ def mapping_assets(campaign: Campaign) -> list:
         from_slice = from_calipers = from_outline = 0
         widening = None
         if by_slice:
+            from forestmap_assets.core.mapping.slice_splats import splat_steps
             from forestmap_assets.core.mapping.stem_calipers import tree_dbh
             from forestmap_assets.core.mapping.stem_slices import slice_clouds
 
             clouds = slice_clouds(raw.get("range_images") or {}, integrated_map["scans"], trees, tp)
+            splats = splat_steps(integrated_map["scans"], raw.get("range_images") or {})
             trees, fits = tree_dbh(trees, integrated_map["cylinders"], tree_of_cyl, clouds, integrated_map["scans"],
-                                   tp, images=raw.get("range_images") if tp.calipers else None)
+                                   tp, images=raw.get("range_images") if tp.calipers else None, splats=splats)
             from_calipers = int((fits["caliper_scans"] > 0).sum()) if tp.calipers else 0
             from_outline = int(fits["outline_dbh_m"].notna().sum()) if "outline_dbh_m" in fits else 0
             from_slice = int((fits["reason"] == "").sum())

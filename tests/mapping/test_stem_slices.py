@@ -7,8 +7,8 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.core.geometry import transform_points
+from forestmap_assets.core.mapping.cylinder_radii import axis_slopes
 from forestmap_assets.core.mapping.stem_slices import (
-    axis_slopes,
     gather_slices,
     merged_slice_dbh,
     slice_dbh,

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from forestmap_assets.core.geometry import compose, relative_pose, transform_points, wrap_deg
-from forestmap_assets.core.mapping.stem_slices import axis_slopes
+from forestmap_assets.core.mapping.cylinder_radii import axis_slopes
 from forestmap_assets.core.mapping.trees import (
     absorb_nested,
     beam_options,

@@ -31,6 +31,34 @@ def radius_at(cyl: pd.DataFrame, z: np.ndarray,
     return 0.5 * (r0 + r1) + (t - 0.5) * span * slope
 
 
+MAX_SLOPE = 0.3  # lean (dx/dz) of a stem's axis at most
+
+
+def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
+                z_max: np.ndarray | None = None, max_slope: float = MAX_SLOPE) -> np.ndarray:
+    """Lean (dx/dz, dy/dz) of each tree (1-based ``tree_of_cyl``, 0: no tree), the
+    ``n_circles``-weighted mean of its cylinders' axes (only those starting below ``z_max`` of
+    their tree when given), clipped to ``max_slope``; zero for a tree without such a cylinder."""
+    out = np.zeros((n_trees, 2))
+    if len(cyl) == 0 or n_trees == 0:
+        return out
+    p0 = cyl[["x0", "y0", "z0"]].to_numpy(float)
+    p1 = cyl[["x1", "y1", "z1"]].to_numpy(float)
+    dz = p1[:, 2] - p0[:, 2]
+    ok = np.abs(dz) > 0.05
+    slope = np.where(ok[:, None], (p1[:, :2] - p0[:, :2]) / np.where(ok, dz, 1.0)[:, None], 0.0)
+    k = np.asarray(tree_of_cyl, dtype=int) - 1
+    ok &= k >= 0
+    k = np.maximum(k, 0)
+    if z_max is not None:
+        ok &= np.minimum(p0[:, 2], p1[:, 2]) < np.asarray(z_max, float)[k]
+    w = np.where(ok, cyl["n_circles"].to_numpy(float), 0.0)
+    sw = np.bincount(k, w, minlength=n_trees)
+    for j in range(2):
+        num = np.bincount(k, w * slope[:, j], minlength=n_trees)
+        out[:, j] = np.where(sw > 0, num / np.where(sw > 0, sw, 1.0), 0.0)
+    return np.clip(out, -max_slope, max_slope)
+
 def weighted_stat(values: np.ndarray, weights: np.ndarray, statistic: str) -> float:
     """Weighted ``"mean"`` or ``"median"`` (the smallest value whose cumulative weight reaches
     half the total; the mean of the two middle values when it lands exactly on half)."""

@@ -48,6 +48,7 @@ from scipy.spatial import cKDTree
 from forestmap_assets.core.features.range_image import table_azimuth_step
 from forestmap_assets.core.geometry import rot_z, transform_points
 from forestmap_assets.core.mapping.silhouette_widening import Widening, campaign_widening
+from forestmap_assets.core.mapping.slice_splats import splat_edges_back
 from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_dbhs
 from forestmap_assets.core.mapping.stem_slices import (
     MAX_SLOPE,
@@ -370,7 +371,8 @@ def outline_refs(trees: pd.Series, calipers: pd.DataFrame, weight: float, tp) ->
 
 def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, clouds: Mapping[str, np.ndarray],
              poses: pd.DataFrame, tp, images: Mapping[str, pa.Table] | None = None,
-             breast_height_m: float = 1.3) -> tuple[pd.DataFrame, pd.DataFrame]:
+             breast_height_m: float = 1.3,
+             splats: Mapping[str, tuple[float, float]] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The trees' DBH from the merged slices (:func:`~.stem_slices.merged_slice_dbh`, same
     arguments), blended with the silhouettes' widths when ``tp.calipers`` and the scans' range
     images ``images`` (``EDGE_COLUMNS_NEEDED``) are given, then with one outline fitted to the
@@ -378,16 +380,17 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
     With ``tp.caliper_widening`` "campaign" the edges first lose
     :func:`~.silhouette_widening.campaign_widening`. The fits gain ``caliper_dbh_m, caliper_sd_m,
     caliper_scans, caliper_widening_m, caliper_widening_per_m, caliper_widening_far_m`` (and
-    ``outline_dbh_m, outline_sd_m``); a blended tree's ``dbh_note`` says so."""
+    ``outline_dbh_m, outline_sd_m``); a blended tree's ``dbh_note`` says so. ``splats``: the
+    scans whose splat widening the slices take back (:func:`~.slice_splats.splat_steps`)."""
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
     with_outline = bool(tp.calipers and images and tp.outline_ref_sd_m > 0)
-    slices, sensors = slice_points(clouds, poses, stems, tp, gather_half_height(tp) if with_outline else None)
+    slices, sensors = slice_points(clouds, poses, stems, tp, gather_half_height(tp) if with_outline else None, splats)
     out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems,
                                  gathered=(within_band(slices, stems, tp.slice_half_height_m), sensors))
     fits["caliper_dbh_m"], fits["caliper_sd_m"], fits["caliper_scans"] = np.nan, np.nan, 0
     if not (tp.calipers and images):
         return out, fits
-    edges = tree_edges(images, poses, stems, tp)
+    edges = splat_edges_back(tree_edges(images, poses, stems, tp), splats)
     calipers = tree_calipers(images, poses, stems, tp, edges=edges)
     widening = Widening()
     if tp.caliper_widening == "campaign" and len(edges):

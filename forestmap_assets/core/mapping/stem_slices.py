@@ -59,6 +59,8 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from forestmap_assets.core.geometry import rot_z, transform_points
+from forestmap_assets.core.mapping.cylinder_radii import MAX_SLOPE, axis_slopes
+from forestmap_assets.core.mapping.slice_splats import splat_back
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -79,35 +81,6 @@ class SliceFit:
     reason: str = ""
     sd_m: float = float("nan")
     sigma_m: float = float("nan")  # robust scatter of the points about the outline
-
-
-MAX_SLOPE = 0.3  # lean (dx/dz) of a stem's axis at most
-
-
-def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
-                z_max: np.ndarray | None = None, max_slope: float = MAX_SLOPE) -> np.ndarray:
-    """Lean (dx/dz, dy/dz) of each tree (1-based ``tree_of_cyl``, 0: no tree), the
-    ``n_circles``-weighted mean of its cylinders' axes (only those starting below ``z_max`` of
-    their tree when given), clipped to ``max_slope``; zero for a tree without such a cylinder."""
-    out = np.zeros((n_trees, 2))
-    if len(cyl) == 0 or n_trees == 0:
-        return out
-    p0 = cyl[["x0", "y0", "z0"]].to_numpy(float)
-    p1 = cyl[["x1", "y1", "z1"]].to_numpy(float)
-    dz = p1[:, 2] - p0[:, 2]
-    ok = np.abs(dz) > 0.05
-    slope = np.where(ok[:, None], (p1[:, :2] - p0[:, :2]) / np.where(ok, dz, 1.0)[:, None], 0.0)
-    k = np.asarray(tree_of_cyl, dtype=int) - 1
-    ok &= k >= 0
-    k = np.maximum(k, 0)
-    if z_max is not None:
-        ok &= np.minimum(p0[:, 2], p1[:, 2]) < np.asarray(z_max, float)[k]
-    w = np.where(ok, cyl["n_circles"].to_numpy(float), 0.0)
-    sw = np.bincount(k, w, minlength=n_trees)
-    for j in range(2):
-        num = np.bincount(k, w * slope[:, j], minlength=n_trees)
-        out[:, j] = np.where(sw > 0, num / np.where(sw > 0, sw, 1.0), 0.0)
-    return np.clip(out, -max_slope, max_slope)
 
 
 def _in_band(z: np.ndarray, zbh: np.ndarray, half_height_m: float) -> np.ndarray:
@@ -170,8 +143,8 @@ def slice_members(p: np.ndarray, tree: cKDTree, zbh: np.ndarray, slope: np.ndarr
 
 
 def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame, *,
-                  half_height_m: float = 0.1, gate_factor: float = 1.5,
-                  gate_margin_m: float = 0.05) -> tuple[pd.DataFrame, np.ndarray]:
+                  half_height_m: float = 0.1, gate_factor: float = 1.5, gate_margin_m: float = 0.05,
+                  splats: Mapping[str, tuple[float, float]] | None = None) -> tuple[pd.DataFrame, np.ndarray]:
     """Points of every registered scan in each stem's breast-height slice, global frame.
 
     ``clouds`` maps scan id to its levelled points (n, 3) in the scanner frame; ``poses`` has
@@ -183,7 +156,9 @@ def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: 
 
     Returns ``SLICE_COLUMNS`` (``tree`` the 0-based row of ``stems``, ``x, y`` moved along the
     axis to breast height, ``z`` the original height, ``scan`` the index into ``clouds``) and the
-    sensor position (scans, 2) of each scan index. One k-d tree query per scan."""
+    sensor position (scans, 2) of each scan index. One k-d tree query per scan. ``splats``:
+    scan id -> (splat radius, angular step) of scans whose splat widening is taken back
+    (:func:`~.slice_splats.splat_back`)."""
     scan_ids = list(clouds)
     sensors = np.full((len(scan_ids), 2), np.nan)
     empty = pd.DataFrame({c: pd.Series(dtype="int64" if c in ("tree", "scan") else "float64")
@@ -208,6 +183,9 @@ def gather_slices(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: 
         p = transform_points(np.asarray(xyz[near], np.float64), pose)
         i, k, dz = slice_members(p, tree, zbh, slope, reach, half_height_m)
         xy = p[i, :2] - slope[k] * dz[:, None]
+        if splats and sid in splats:
+            rng = np.linalg.norm(np.asarray(xyz[near][i], np.float64), axis=1)
+            xy = splat_back(xy, pose[:2], centre[k], rng, *splats[sid])
         parts.append(pd.DataFrame({"tree": k, "x": xy[:, 0], "y": xy[:, 1],
                                    "z": p[i, 2], "scan": np.full(i.size, index)}))
     if not parts:
@@ -459,12 +437,13 @@ def gather_half_height(tp) -> float:
 
 
 def slice_points(clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, stems: pd.DataFrame, tp,
-                 half_height_m: float | None = None) -> tuple[pd.DataFrame, np.ndarray]:
+                 half_height_m: float | None = None,
+                 splats: Mapping[str, tuple[float, float]] | None = None) -> tuple[pd.DataFrame, np.ndarray]:
     """:func:`gather_slices` with the tree parameters ``tp``' gate, within ``half_height_m``
     (default the slice's) of breast height."""
     half = tp.slice_half_height_m if half_height_m is None else half_height_m
-    return gather_slices(clouds, poses, stems, half_height_m=half,
-                         gate_factor=tp.slice_gate_factor, gate_margin_m=tp.slice_gate_margin_m)
+    return gather_slices(clouds, poses, stems, half_height_m=half, gate_factor=tp.slice_gate_factor,
+                         gate_margin_m=tp.slice_gate_margin_m, splats=splats)
 
 
 def within_band(slices: pd.DataFrame, stems: pd.DataFrame, half_height_m: float) -> pd.DataFrame:
