@@ -381,7 +381,10 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
     :func:`~.silhouette_widening.campaign_widening`. The fits gain ``caliper_dbh_m, caliper_sd_m,
     caliper_scans, caliper_widening_m, caliper_widening_per_m, caliper_widening_far_m`` (and
     ``outline_dbh_m, outline_sd_m``); a blended tree's ``dbh_note`` says so. ``splats``: the
-    scans whose splat widening the slices take back (:func:`~.slice_splats.splat_steps`)."""
+    scans whose splat widening the slices and sides take back (:func:`~.slice_splats.splat_steps`);
+    with any, the campaign widening beyond the slice trees' range tapers off instead of following
+    the cylinders, whose arcs kept the splats (rendered 56, 12 mm: cylinders +3.4 cm, DBH RMSE
+    3.07 -> 1.93 cm)."""
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
     with_outline = bool(tp.calipers and images and tp.outline_ref_sd_m > 0)
     slices, sensors = slice_points(clouds, poses, stems, tp, gather_half_height(tp) if with_outline else None, splats)
@@ -395,8 +398,10 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
     widening = Widening()
     if tp.caliper_widening == "campaign" and len(edges):
         edge_range = edges.groupby("tree")["range_m"].median().reindex(range(len(stems))).to_numpy(float)
+        # the cylinders were fitted on splat-widened arcs: no reference where splats came off
+        cylinder_dbh = None if splats else fits["dbh_cylinders_m"].to_numpy(float)
         widening = campaign_widening(calipers, fits["dbh_slice_m"].to_numpy(float), edge_range,
-                                     tp.caliper_widening_min_trees, fits["dbh_cylinders_m"].to_numpy(float))
+                                     tp.caliper_widening_min_trees, cylinder_dbh)
         if widening:
             edges = edges.assign(h_m=edges["h_m"] - 0.5 * widening(edges["range_m"].to_numpy(float)))
             calipers = tree_calipers(images, poses, stems, tp, edges=edges)
