@@ -59,6 +59,7 @@ def axis_slopes(cyl: pd.DataFrame, tree_of_cyl: np.ndarray, n_trees: int,
         out[:, j] = np.where(sw > 0, num / np.where(sw > 0, sw, 1.0), 0.0)
     return np.clip(out, -max_slope, max_slope)
 
+
 def weighted_stat(values: np.ndarray, weights: np.ndarray, statistic: str) -> float:
     """Weighted ``"mean"`` or ``"median"`` (the smallest value whose cumulative weight reaches
     half the total; the mean of the two middle values when it lands exactly on half)."""

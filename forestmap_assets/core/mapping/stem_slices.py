@@ -237,10 +237,10 @@ def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float,
     a0, theta, sigma, sd = float(radius_m), np.zeros(5), max(0.5 * radius_m, 0.02), np.nan
     coverage, rms = 0.0, np.nan
     for it in range(iterations):
-        v = xy - c
         if sensor_xy is not None:
             d, psi, lateral = _along_ray_hits(xy, sensor_xy, c, a0)
         else:
+            v = xy - c
             d, psi = np.hypot(*v.T), np.arctan2(v[:, 1], v[:, 0])
         model = a0 + theta[3] * np.cos(2 * psi) + theta[4] * np.sin(2 * psi)
         keep = np.abs(d - model) <= max(trim_sigmas * sigma, 0.01) if it else (
@@ -315,10 +315,8 @@ def _along_ray_hits(xy: np.ndarray, sensor_xy: np.ndarray, c: np.ndarray,
     """Each point's distance from the centre ``c`` along the outward normal ``n`` where its ray
     meets the circle of radius ``a0`` (the limb for a ray that misses it), the normal's angle
     ``psi``, and the ray's lateral distance from ``c``. Range noise moves a point along its ray
-    and so leaves ``n`` alone: ``(p - c) . n`` is linear in it, unbiased, and a point is binned
-    where its ray looked. Binned by its own angle, a point of a ray near the limb that the noise
-    carried farther lands beyond the others and inside the outline (2.5 cm noise: the arc's end
-    bins 1.5-2 cm inside, the outline of two sides 1 cm small)."""
+    and so leaves ``n`` alone: ``(p - c) . n`` is linear in it, and a point is binned where its
+    ray looked (module docstring, step 2)."""
     ray = xy - sensor_xy
     u = ray / np.maximum(np.hypot(*ray.T), 1e-12)[:, None]
     to_c = c - sensor_xy
