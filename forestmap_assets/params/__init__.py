@@ -90,6 +90,9 @@ class RegistrationParams(_Stage):
     # 1.03 (plain scatter times 1.2: 0.57 / 0.46 / 0.89; benchmarks/results.md "polish_sd")
     stem_polish: bool = False
     polish_sd_scale: float = 1.0
+    # Huber weights at polish_huber_k robust sigmas of the segments' residuals (None: least squares
+    # trimmed at 3 RMS; the forest preset: 1.345)
+    polish_huber_k: float | None = None
     polish_max_sigmas: float = 3.0
     # pairs with no prior: 'bnb' searches the no-prior box (full circle, plot-size xy); 'fourier'
     # centres the forest box on the Fourier coarse registration of the raw points (men spec 4);
@@ -309,7 +312,9 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
                     "stem_gap_share": 0.5},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
-        "registration": {"stem_polish": True},
+        # Huber weights (k 1.345, sigma x 1.3): scans' heading error RMS own realistic 0.0085 ->
+        # 0.0069, Sylva 0.0019 -> 0.0015, rendered 0.0015 -> 0.0012 deg (results.md "polish_huber")
+        "registration": {"stem_polish": True, "polish_huber_k": 1.345, "polish_sd_scale": 1.3},
         # (inferred) colour scans refined both ways too: HICP took 13 s a pair and placed scans
         # worse (own realistic with colour, 70-72; results.md "colour_refine"); renders' splats
         # taken back where a pair fits better so (results.md "splat_dilation")

@@ -373,7 +373,8 @@ def register_candidates(
 
             done = polish_pose(submaps[c.scan], submaps[c.reference], centre, sd,
                                match_m=max(3 * params.sigma_m, params.final_cell_m),
-                               sd_scale=params.polish_sd_scale, max_sigmas=params.polish_max_sigmas)
+                               sd_scale=params.polish_sd_scale, max_sigmas=params.polish_max_sigmas,
+                               huber_k=params.polish_huber_k)
             extra.update(polish_segments=done.segments, polish_reason=done.reason,
                          polish_dheading_deg=float(wrap_deg(done.pose[3] - centre[3])))
             if not done.reason:
