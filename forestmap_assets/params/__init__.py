@@ -304,10 +304,12 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # "ground_cells"). Scale floors: Sylva's networks 0.06 mm/m RMS (results.md "scale_floor"),
         # the own simulator's 3 mrad beam's -0.2 / +0.17 mm/m on realistic / circular stems
         # (results.md "wide_beam_scale"). Variance factor: Sylva 36's loops 1.3 / 1.7 x worse.
-        # objective_scale_correct_t: renders' xy errors, median 0.36 -> 0.10 cm ("scale_taken_out")
+        # objective_scale_correct_t left at inf (a sigma only): with the renders' splats taken back
+        # in the refinement, taking the scale out turned renders 53-54 from -0.13 to -0.27 mm/m
+        # (results.md "scale_kept_in"; it had helped before, "scale_taken_out")
         # stem_gap_share: half the stems' and raw points' scale difference ("stem_gap")
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05), "z_residual_sigmas": 5.0,
-                    "refined_scan_correlation": (0.1, 0.1, 0.2, 0.25), "objective_scale_correct_t": 6.0,
+                    "refined_scan_correlation": (0.1, 0.1, 0.2, 0.25),
                     "scale_sd_floor": 8e-5, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3,
                     "stem_gap_share": 0.5},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's

@@ -86,8 +86,11 @@ def take_out(links: pd.DataFrame, scale: float, t: float, correct_t: float) -> t
     objective's length (:func:`shorten_links`) and no scale is left as a sigma (the floor
     ``mapping.scale_sd_floor`` still applies); else the links stay and the scale is a sigma
     (:func:`widen_links`, :func:`scale_sd`). Scans rendered inside a registered cloud, where
-    the splats widen every silhouette, differ by 0.28-0.38 mm/m at t 9-16; Sylva's surveys at
-    t -0.8 to 4.2 (results.md "scale_taken_out")."""
+    the splats widen every silhouette, differed by 0.28-0.38 mm/m at t 9-16; Sylva's surveys at
+    t -0.8 to 4.2 (results.md "scale_taken_out"). Since the refinement takes the splats back
+    (``refine.splat_candidates_m``) they differ by 0.07-0.12 mm/m at t 4-7 while the network is
+    0.11-0.15 mm/m short, and taking the scale out doubled that: the forest preset keeps
+    ``correct_t`` at inf (results.md "scale_kept_in")."""
     if scale and abs(t) >= correct_t:
         return shorten_links(links, scale), 0.0
     return links, scale
