@@ -47,11 +47,11 @@ from scipy.spatial import cKDTree
 
 from forestmap_assets.core.features.range_image import table_azimuth_step
 from forestmap_assets.core.geometry import rot_z, transform_points
+from forestmap_assets.core.mapping.cylinder_radii import MAX_SLOPE
 from forestmap_assets.core.mapping.silhouette_widening import Widening, campaign_widening
 from forestmap_assets.core.mapping.slice_splats import splat_edges_back
 from forestmap_assets.core.mapping.stem_outline import blend_outline, outline_dbhs
 from forestmap_assets.core.mapping.stem_slices import (
-    MAX_SLOPE,
     StemCells,
     gather_half_height,
     merged_slice_dbh,

@@ -101,6 +101,14 @@ def _clustered_cov(A: np.ndarray, r: np.ndarray, q: np.ndarray, stem_m: float,
     return cov if n_stems >= 6 or cov[2, 2] >= plain[2, 2] else plain
 
 
+def _huber_weights(residuals: np.ndarray, k: float) -> np.ndarray:
+    """Huber's weight ``min(1, k s / |r|)`` of each segment's 2-D residual (n, 2), ``s`` the
+    residuals' median length over 1.1774 (the per-axis sigma of a 2-D normal)."""
+    length = np.hypot(*residuals.T)
+    s = max(float(np.median(length)) / 1.1774, 1e-4)
+    return np.minimum(1.0, k * s / np.maximum(length, 1e-12))
+
+
 def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose, sd, *,
                 match_m: float = 0.105, min_points: int = 5, min_segments: int = 4,
                 trim_sigmas: float = 3.0, sd_scale: float = 1.0, max_sigmas: float = 3.0,
@@ -126,7 +134,7 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
         q, e = _segment_residuals(transform_points(pts, pose), ids, tree, ref[:, :2], match_m, min_points)
         keep = np.ones(len(q), bool)
         wts = np.ones(len(q))
-        for _trim in range(2 if huber_k is None else 8):
+        for _refit in range(2 if huber_k is None else 8):
             n = int(keep.sum())
             if n < min_segments:
                 return Polish(start, np.nan, n, f"only {n} stem segments pair")
@@ -145,12 +153,10 @@ def polish_pose(scan_submap: pd.DataFrame, reference_submap: pd.DataFrame, pose,
             s2 = float((r * r).sum()) / max(2 * n - 3, 1)
             cov = s2 * np.linalg.inv(normal)
             if huber_k is not None:
-                raw = np.hypot(*(r / np.sqrt(wts[keep])[:, None]).T)  # unweighted residuals
-                scale = max(float(np.median(raw)) / 1.1774, 1e-4)  # per-axis sigma of a 2-D normal
-                new_w = np.minimum(1.0, huber_k * scale / np.maximum(raw, 1e-12))
-                done = np.allclose(new_w, wts[keep], atol=1e-3)
+                new_w = _huber_weights(r / np.sqrt(wts[keep])[:, None], huber_k)
+                settled = np.allclose(new_w, wts[keep], atol=1e-3)
                 wts[keep] = new_w
-                if done:
+                if settled:
                     break
                 continue
             far = np.hypot(*r.T) > trim_sigmas * max(np.sqrt(2.0 * s2), 1e-4)  # a 2-D residual's RMS
