@@ -33,7 +33,7 @@ def tree_lists(root: Path) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd
     from forestmap_assets.access import load_asset
     from forestmap_assets.core.features.elevation import elevation_from_table
     from forestmap_assets.core.mapping.slice_splats import splat_steps
-    from forestmap_assets.core.mapping.stem_calipers import tree_dbh
+    from forestmap_assets.core.mapping.tree_dbh import tree_dbh
     from forestmap_assets.core.mapping.trees import beam_options, merge_trees
     from forestmap_assets.io.campaign import load_campaign
 
@@ -41,7 +41,7 @@ def tree_lists(root: Path) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, pd
     im = load_asset("integrated_map", campaign=root)
     grid = elevation_from_table(im["elevation"])
     tp = camp.params.trees
-    cylinders, tree_of = merge_trees(im["cylinders"], grid,
+    cylinders, tree_of = merge_trees(im["cylinders"], grid, min_top_m=tp.understorey_top_m or None,
                                      **beam_options(tp.beam_exit_m, 1e-3 * tp.beam_divergence_mrad))
     poses = im["scans"]
     clouds, images = {}, {}

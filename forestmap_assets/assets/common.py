@@ -42,7 +42,7 @@ CODE_VERSIONS: dict[str, str] = {
     "residual_checks": "1",
     "scan_tilts": "1",
     "integrated_map": "2",
-    "tree_list": "14",
+    "tree_list": "15",
 }
 
 # Which parameter sections each stage reads (their hash enters the code version).

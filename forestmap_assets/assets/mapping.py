@@ -279,14 +279,14 @@ def mapping_assets(campaign: Campaign) -> list:
     @timed
     def tree_list(context, integrated_map, **raw):  # raw: {"range_images": ...} with the slice DBH
         grid = elevation_from_table(integrated_map["elevation"])
-        trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid,
+        trees, tree_of_cyl = merge_trees(integrated_map["cylinders"], grid, min_top_m=tp.understorey_top_m or None,
                                          **beam_options(tp.beam_exit_m, 1e-3 * tp.beam_divergence_mrad))
         from_slice = from_calipers = from_outline = 0
         widening = None
         if by_slice:
             from forestmap_assets.core.mapping.slice_splats import splat_steps
-            from forestmap_assets.core.mapping.stem_calipers import tree_dbh
             from forestmap_assets.core.mapping.stem_slices import slice_clouds
+            from forestmap_assets.core.mapping.tree_dbh import tree_dbh
 
             clouds = slice_clouds(raw.get("range_images") or {}, integrated_map["scans"], trees, tp)
             splats = splat_steps(integrated_map["scans"], raw.get("range_images") or {})

@@ -171,6 +171,10 @@ class TreeParams(_Stage):
 
     # slice: merged points' outline at 1.3 m; cylinders: twice their radius there (the fallback)
     dbh_method: Literal["slice", "cylinders"] = "slice"
+    # a stem none of whose cylinders reaches this high above its ground is understorey, not a
+    # tree (0: every stem a tree; e.g. 2.5 under dense understorey, trees.merge_trees: it also
+    # drops 0.7-0.9 % of true stems on Sylva and rendered surveys, seen only low or in bits)
+    understorey_top_m: float = 0.0
     slice_half_height_m: float = 0.1  # slice 1.2-1.4 m above the ground under the stem
     slice_gate_factor: float = 1.5  # points within 1.5 x the cylinder radius + margin of the axis
     slice_gate_margin_m: float = 0.05
@@ -222,6 +226,15 @@ class TreeParams(_Stage):
     # sd of the cylinders' radius as the slice's prior of the mean radius (0: none)
     slice_cylinder_sd_m: float = 0.01
     slice_max_change: float = 0.5  # slice DBH further than this share from the cylinders': cylinders
+    # a DBH this share off its gates' radius is gathered again about it, this many times, the
+    # radius at most anchor_max_share x the cylinders' (core/mapping/tree_dbh.py)
+    anchor_passes: int = 3
+    anchor_share: float = 0.1
+    anchor_max_share: float = 2.0
+    # with the DBH measured, a tree whose axis is within overlap_share of its radius plus this
+    # margin of a thicker one's bark overlaps it and leaves the list (0: not; tree_dbh.py)
+    overlap_share: float = 0.5
+    overlap_margin_m: float = 0.03
     range_sigma_m: float = 0.025  # range noise (Table 6.1), for the bias of noisy point distances
 
 

@@ -17,6 +17,7 @@ from forestmap_assets.core.mapping.stem_calipers import (
     tree_calipers,
     width_function,
 )
+from forestmap_assets.core.mapping.tree_dbh import tree_dbh
 from forestmap_assets.params import TreeParams
 
 EXIT_M, DIV_RAD = 0.042, 0.003  # the own simulator's beam (spec 1.1)
@@ -326,3 +327,52 @@ def test_a_constant_widening_is_not_carried_beyond_the_slice_trees():
     assert w(np.array([rmax]))[0] == pytest.approx(0.02)
     assert w(np.array([1.25 * rmax]))[0] == pytest.approx(0.01)
     assert w(np.array([1.5 * rmax, 40.0])) == pytest.approx([0.0, 0.0])
+
+
+def three_scans(r, cx, cy):
+    """Range images, poses and levelled clouds of three scans 9-12 m round a pole."""
+    sensors = [(cx - d * np.cos(a), cy - d * np.sin(a))
+               for d, a in zip((9.0, 10.5, 12.0), np.radians([0, 115, 240]), strict=True)]
+    tables = {f"S{i}": scan_table([(cx - sx, cy - sy, r)]) for i, (sx, sy) in enumerate(sensors)}
+    poses = poses_table(*[(f"S{i}", sx, sy, 0.0, 0.0) for i, (sx, sy) in enumerate(sensors)])
+    return tables, poses, {k: np.column_stack([t.column(a).to_numpy() for a in "xyz"]) for k, t in tables.items()}
+
+
+def test_a_stem_its_cylinders_read_small_is_gathered_again_about_its_dbh():
+    """A 0.224 m stem seen by three scans all round, its one cylinder near breast height a
+    13 cm lobe 3 cm off the axis: the gates about 13 cm cut the silhouettes' far edges and the
+    slice, so one pass reads about 19 cm; gathered again about each pass's DBH, the widths and
+    the outline give it within a centimetre, and the note says so."""
+    r, (cx, cy) = 0.112, (10.0, 0.37)
+    tables, poses, clouds = three_scans(r, cx, cy)
+    trees = pd.DataFrame({"tree_id": [1], "x": [cx], "y": [cy - 0.03], "z": [-1.3], "dbh_m": [0.13],
+                          "n_scans": [1], "n_cylinders": [1], "visible_length_m": [1.0], "dbh_note": [""]})
+
+    def dbh(passes):
+        return tree_dbh(trees, pd.DataFrame(), np.zeros(0, int), clouds, poses, params(anchor_passes=passes),
+                        images=tables)
+
+    once, _ = dbh(0)
+    assert 2 * r - once["dbh_m"].iat[0] > 0.025
+    out, fits = dbh(3)
+    assert abs(out["dbh_m"].iat[0] - 2 * r) < 0.01
+    assert abs(fits["anchor_dbh_m"].iat[0] - 2 * r) < 0.01
+    assert "gathered about a 22." in out["dbh_note"].iat[0]
+
+
+def test_a_tree_on_a_thicker_ones_bark_leaves_the_list():
+    """A 0.30 m stem seen by three scans, and a 9 cm "tree" (a stub's cylinder) whose axis lies
+    on its bark, 16 cm from the stem's: the cylinders' nesting rule (inside the 0.145 m radius)
+    keeps it; measured, the stem's 0.30 m section overlaps it, it leaves the list and the stem,
+    measured again without it, is within a centimetre."""
+    r, (cx, cy) = 0.15, (10.0, 0.37)
+    tables, poses, clouds = three_scans(r, cx, cy)
+    trees = pd.DataFrame({"tree_id": [1, 2], "x": [cx, cx + 0.02], "y": [cy, cy + 0.16], "z": -1.3,
+                          "dbh_m": [0.29, 0.09], "n_scans": 1, "n_cylinders": [4, 1], "visible_length_m": 3.0,
+                          "dbh_note": ""})
+    kept = tree_dbh(trees, pd.DataFrame(), np.zeros(0, int), clouds, poses, params(overlap_margin_m=0.0),
+                    images=tables)[0]
+    assert len(kept) == 2
+    out, fits = tree_dbh(trees, pd.DataFrame(), np.zeros(0, int), clouds, poses, params(), images=tables)
+    assert len(out) == 1 and len(fits) == 1 and out["x"].iat[0] == cx
+    assert abs(out["dbh_m"].iat[0] - 2 * r) < 0.01

@@ -16,6 +16,7 @@ from forestmap_assets.core.mapping.trees import (
     cylinders_to_global,
     ground_under,
     merge_trees,
+    nested_trees,
 )
 
 
@@ -45,6 +46,37 @@ def test_a_tree_inside_another_stem_leaves_the_list():
     np.testing.assert_allclose(axis_slopes(cyl, tree_of, len(out)), [[0.02, 0.0], [0.0, 0.0], [0.0, 0.0]], atol=1e-12)
     kept, same = absorb_nested(trees.iloc[2:4].reset_index(drop=True), np.array([1, 2]))
     assert len(kept) == 2 and same.tolist() == [1, 2]
+
+
+def test_a_tree_whose_axis_lies_on_a_thicker_ones_bark_leaves_the_list_once_measured():
+    """With the DBH measured (tree_dbh), a tree within half its own radius plus 3 cm of a
+    thicker one's bark overlaps it (a lobe's or stub's cylinder); the thicker stays whatever
+    their cylinders' count, a tree 2 cm clear of the bark stays, and a stub without a DBH
+    goes within 3 cm of the bark."""
+    trees = pd.DataFrame({"tree_id": [1, 2, 3, 4, 5, 6], "x": [0.0, 0.31, 5.0, 5.37, 9.0, 9.27], "y": 0.0, "z": 0.0,
+                          "dbh_m": [0.56, 0.11, 0.56, 0.14, 0.50, np.nan], "n_scans": 2,
+                          "n_cylinders": [3, 5, 3, 1, 4, 1], "visible_length_m": 5.0, "dbh_note": ""})
+    # 0.31 < 0.28 + 0.5 x 0.055 + 0.03; 0.37 > 0.28 + 0.5 x 0.07 + 0.03 (2 cm bark to bark); 0.27 < 0.25 + 0.03
+    assert nested_trees(trees, 0.5, 0.03, prefer="thicker").tolist() == [False, True, False, False, False, True]
+    # the cylinders' rule (inside the section, more cylinders first) keeps them all here
+    assert not nested_trees(trees).any()
+
+
+def test_understorey_below_the_top_height_is_not_a_tree():
+    """A sapling whose one cylinder ends 1.9 m above the ground leaves the list with
+    ``min_top_m`` 2.5, its cylinder belonging to no tree; the stem reaching 4 m stays, and so
+    does a 14 cm stem that three scans saw up to a fork at 2.3 m."""
+    grid = SimpleNamespace(z=np.zeros((150, 150)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    cyl = pd.DataFrame([_cyl(0, (0, 0, 0), (0, 0), 0.15, 0.15, 0.5, 2.0), _cyl(1, (0, 0, 0), (0, 0), 0.15, 0.15, 2.0, 4.0),
+                        _cyl(2, (3, 1, 0), (0, 0), 0.04, 0.04, 0.4, 1.9)]
+                       + [_cyl(3 + i, (6, 0, 0), (0, 0), 0.07, 0.07, 0.5, 2.3) for i in range(3)])
+    cyl = cyl.assign(scan=["A", "A", "A", "A", "B", "C"])
+    every, tree_of = merge_trees(cyl, grid)
+    assert len(every) == 3 and tree_of.tolist() == [1, 1, 2, 3, 3, 3]
+    trees, tree_of = merge_trees(cyl, grid, min_top_m=2.5)
+    assert trees["x"].round(6).tolist() == [0.0, 6.0] and tree_of.tolist() == [1, 1, 0, 2, 2, 2]
+    two, _ = merge_trees(cyl.assign(scan=["A", "A", "A", "A", "B", "B"]), grid, min_top_m=2.5)
+    assert two["x"].round(6).tolist() == [0.0]
 
 
 def test_pose_helpers_round_trip():

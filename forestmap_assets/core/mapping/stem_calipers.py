@@ -57,7 +57,6 @@ from forestmap_assets.core.mapping.stem_slices import (
     merged_slice_dbh,
     slice_members,
     slice_points,
-    slice_stems,
     within_band,
 )
 
@@ -289,7 +288,7 @@ def _side_radius_dbh(sides: pd.DataFrame, radius_m: np.ndarray, side_min: int, a
     without / with, cm): stored 1-3, 7-13 1.23 / 1.20, bench_dbh seeds 4-6, 14-16 1.65 / 1.32,
     17-22 1.41 / 1.27, 23-28 1.30 / 1.31 (the floor set here), 29-34 1.83 / 1.76
     (benchmarks/results.md "side_radius"). Such a DBH carries the axis's error across the lines
-    of sight, which sides from one direction cannot show: :func:`tree_dbh` blends the outline
+    of sight, which sides from one direction cannot show: :func:`dbh_about` blends the outline
     into it as into the cylinders' (``outline_ref_cylinders_sd_m``; results.md "lone_sides")."""
     if sides.empty:
         return _no_calipers()
@@ -369,22 +368,23 @@ def outline_refs(trees: pd.Series, calipers: pd.DataFrame, weight: float, tp) ->
     return np.where(widths, tp.outline_ref_sd_m, tp.outline_ref_cylinders_sd_m)
 
 
-def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, clouds: Mapping[str, np.ndarray],
-             poses: pd.DataFrame, tp, images: Mapping[str, pa.Table] | None = None,
-             breast_height_m: float = 1.3,
-             splats: Mapping[str, tuple[float, float]] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
+              clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, tp,
+              images: Mapping[str, pa.Table] | None = None, breast_height_m: float = 1.3,
+              splats: Mapping[str, tuple[float, float]] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The trees' DBH from the merged slices (:func:`~.stem_slices.merged_slice_dbh`, same
-    arguments), blended with the silhouettes' widths when ``tp.calipers`` and the scans' range
-    images ``images`` (``EDGE_COLUMNS_NEEDED``) are given, then with one outline fitted to the
-    slice and the silhouette sides together (:mod:`.stem_outline`, ``tp.outline_ref_sd_m``).
-    With ``tp.caliper_widening`` "campaign" the edges first lose
-    :func:`~.silhouette_widening.campaign_widening`. The fits gain ``caliper_dbh_m, caliper_sd_m,
-    caliper_scans, caliper_widening_m, caliper_widening_per_m, caliper_widening_far_m`` (and
-    ``outline_dbh_m, outline_sd_m``); a blended tree's ``dbh_note`` says so. ``splats``: the
-    scans whose splat widening the slices and sides take back (:func:`~.slice_splats.splat_steps`);
-    with any, the campaign widening beyond the slice trees' range tapers off instead of following
-    the cylinders, whose arcs kept the splats (:mod:`.slice_splats`)."""
-    stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
+    arguments) gathered about ``stems`` (:func:`~.stem_slices.slice_stems`, their ``radius_m``
+    the gates' anchors: :func:`~.tree_dbh.tree_dbh`), blended with the silhouettes' widths
+    when ``tp.calipers`` and the scans' range images ``images`` (``EDGE_COLUMNS_NEEDED``) are
+    given, then with one outline fitted to the slice and the silhouette sides together
+    (:mod:`.stem_outline`, ``tp.outline_ref_sd_m``). With ``tp.caliper_widening`` "campaign"
+    the edges first lose :func:`~.silhouette_widening.campaign_widening`. The fits gain
+    ``caliper_dbh_m, caliper_sd_m, caliper_scans, caliper_widening_m, caliper_widening_per_m,
+    caliper_widening_far_m`` (and ``outline_dbh_m, outline_sd_m``); a blended tree's
+    ``dbh_note`` says so. ``splats``: the scans whose splat widening the slices and sides take
+    back (:func:`~.slice_splats.splat_steps`); with any, the campaign widening beyond the slice
+    trees' range tapers off instead of following the cylinders, whose arcs kept the splats
+    (:mod:`.slice_splats`)."""
     with_outline = bool(tp.calipers and images and tp.outline_ref_sd_m > 0)
     slices, sensors = slice_points(clouds, poses, stems, tp, gather_half_height(tp) if with_outline else None, splats)
     out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems,

@@ -393,13 +393,16 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
     frame) that may lie in a breast-height slice of ``trees``: within the slice's height band
     and gate (:func:`gather_slices`, any lean up to ``MAX_SLOPE``) of a stem, found with the
     stems' cells (:class:`StemCells`) in the scan's own frame, so that :func:`gather_slices`
-    keeps the same points: a scan's full cloud is several times larger than the slices."""
+    keeps the same points: a scan's full cloud is several times larger than the slices. The
+    gate is that of the widest anchor ``tp.anchor_max_share`` (:func:`~.tree_dbh.tree_dbh`)."""
     zbh = trees["z"].to_numpy(float) + breast_height_m
     if not len(zbh):
         return {}
     half = gather_half_height(tp)
     centre = trees[["x", "y"]].to_numpy(float)
-    radius = np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
+    # the widest gate a tree's anchor may take (tree_dbh.py)
+    grow = max(1.0, tp.anchor_max_share) if tp.anchor_passes > 0 else 1.0
+    radius = grow * np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
     reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m + MAX_SLOPE * half
     placed = poses.assign(scan=poses["scan"].astype(str)).set_index("scan")
     out = {}
