@@ -231,6 +231,8 @@ class TreeParams(_Stage):
     anchor_passes: int = 3
     anchor_share: float = 0.1
     anchor_max_share: float = 2.0
+    # a tree without a silhouette width is first gathered about this x the cylinders' radius
+    anchor_probe: float = 1.5
     # with the DBH measured, a tree whose axis is within overlap_share of its radius plus this
     # margin of a thicker one's bark overlaps it and leaves the list (0: not; tree_dbh.py)
     overlap_share: float = 0.5

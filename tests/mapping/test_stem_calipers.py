@@ -376,3 +376,25 @@ def test_a_tree_on_a_thicker_ones_bark_leaves_the_list():
     out, fits = tree_dbh(trees, pd.DataFrame(), np.zeros(0, int), clouds, poses, params(), images=tables)
     assert len(out) == 1 and len(fits) == 1 and out["x"].iat[0] == cx
     assert abs(out["dbh_m"].iat[0] - 2 * r) < 0.01
+
+
+@pytest.mark.parametrize(("offset", "dbh"), [((0.03, -0.04), 0.13), ((0.04, 0.0), 0.12)])
+def test_a_stem_whose_gates_show_no_whole_width_is_gathered_once_about_a_wider_anchor(offset, dbh):
+    """The 0.224 m stem of three scans, its cylinders' axis 4-5 cm off and their radius 6-6.5 cm:
+    the gates about it keep no scan's two silhouette sides (no width, or single sides only), so
+    the DBH could not leave the cylinders'; gathered once about 1.5 times their radius, the
+    widths appear and the anchors follow them to within a centimetre."""
+    r, (cx, cy) = 0.112, (10.0, 0.37)
+    tables, poses, clouds = three_scans(r, cx, cy)
+    trees = pd.DataFrame({"tree_id": [1], "x": [cx + offset[0]], "y": [cy + offset[1]], "z": [-1.3], "dbh_m": [dbh],
+                          "n_scans": [1], "n_cylinders": [1], "visible_length_m": [1.0], "dbh_note": [""]})
+
+    def run(probe):
+        return tree_dbh(trees, pd.DataFrame(), np.zeros(0, int), clouds, poses, params(anchor_probe=probe),
+                        images=tables)
+
+    held, fits = run(1.0)
+    assert held["dbh_m"].iat[0] == pytest.approx(dbh, abs=1e-3)
+    assert fits["caliper_scans"].iat[0] == 0 or fits["caliper_lone_sides"].iat[0]
+    out, fits = run(1.5)
+    assert abs(out["dbh_m"].iat[0] - 2 * r) < 0.01 and fits["caliper_scans"].iat[0] == 3

@@ -379,7 +379,7 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
     given, then with one outline fitted to the slice and the silhouette sides together
     (:mod:`.stem_outline`, ``tp.outline_ref_sd_m``). With ``tp.caliper_widening`` "campaign"
     the edges first lose :func:`~.silhouette_widening.campaign_widening`. The fits gain
-    ``caliper_dbh_m, caliper_sd_m, caliper_scans, caliper_widening_m, caliper_widening_per_m,
+    ``caliper_dbh_m, caliper_sd_m, caliper_scans, caliper_lone_sides, caliper_widening_m, caliper_widening_per_m,
     caliper_widening_far_m`` (and ``outline_dbh_m, outline_sd_m``); a blended tree's
     ``dbh_note`` says so. ``splats``: the scans whose splat widening the slices and sides take
     back (:func:`~.slice_splats.splat_steps`); with any, the campaign widening beyond the slice
@@ -390,6 +390,7 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
     out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems,
                                  gathered=(within_band(slices, stems, tp.slice_half_height_m), sensors))
     fits["caliper_dbh_m"], fits["caliper_sd_m"], fits["caliper_scans"] = np.nan, np.nan, 0
+    fits["caliper_lone_sides"] = False
     if not (tp.calipers and images):
         return out, fits
     edges = splat_edges_back(tree_edges(images, poses, stems, tp), splats)
@@ -412,7 +413,8 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
     ref = tp.caliper_sd_factor * float(np.median(calipers["caliper_sd_m"])) if len(calipers) else np.nan
     out, weight = blend_calipers(out, calipers, noise, ref)
     rows = fits.index[calipers["tree"].to_numpy(int)]
-    for col, src in (("caliper_dbh_m", "caliper_dbh_m"), ("caliper_sd_m", "caliper_sd_m"), ("caliper_scans", "n_scans")):
+    for col, src in (("caliper_dbh_m", "caliper_dbh_m"), ("caliper_sd_m", "caliper_sd_m"), ("caliper_scans", "n_scans"),
+                     ("caliper_lone_sides", "lone_sides")):
         fits.loc[rows, col] = calipers[src].to_numpy()
     if weight > 0:
         notes = out["dbh_note"].astype(str).to_numpy(object)

@@ -11,6 +11,12 @@ its anchor (twice the anchor radius) is gathered and fitted again about the new 
 most ``tp.anchor_max_share`` times the cylinders'); the cylinders' DBH stays the base the
 slice, widths and outline are blended into. Own realistic seed 150: a 22.4 cm fluted stem
 whose one cylinder below breast height read 13.1 cm: 15.2 cm, now 23.3 (results.md "anchors").
+A tree whose gates keep no scan's two silhouette sides (no width, or single sides only: the
+gate about a small, off-centre axis cut the far edges) has nothing to move it, so it is first
+gathered about ``tp.anchor_probe`` (1.5) times the cylinders' radius, and the anchors follow
+from there (back to the cylinders' where that finds no more). Own realistic seed 159: a 24.8 cm
+stem seen by five scans, its cylinders 17.0 cm, read 17.0 with no width, now 25.1; seed 156 a
+21.7 cm stem 15.3 from two single sides, now 22.6 (results.md "anchor_probe").
 
 Overlaps: :func:`~.trees.absorb_nested` judged nesting by the cylinders' radii, which read
 small on lobed and one-sided stems; with the DBH measured, a tree whose axis lies within
@@ -62,6 +68,13 @@ def _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
     start = stems["radius_m"].to_numpy(float)
     out, fits = dbh_about(stems, trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats)
+    # no silhouette width within the gates: none, or single sides only
+    no_width = (fits["caliper_scans"].to_numpy() == 0) | fits["caliper_lone_sides"].to_numpy(bool)
+    probe = no_width & (start > 0) if tp.anchor_passes and images else None
+    if probe is not None and tp.anchor_probe > 1 and probe.any():
+        wide = min(tp.anchor_probe, tp.anchor_max_share) * start
+        stems = stems.assign(radius_m=np.where(probe, wide, start))
+        out, fits = dbh_about(stems, trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats)
     for _ in range(tp.anchor_passes):
         anchor = stems["radius_m"].to_numpy(float)
         new = np.minimum(out["dbh_m"].to_numpy(float) / 2, tp.anchor_max_share * start)
