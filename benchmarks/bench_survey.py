@@ -563,7 +563,8 @@ def run_forestmap(case: dict, rundir: Path) -> dict:
 def tree_scores(root: Path, out: Path) -> dict | None:
     """forestmap's tree list against the simulator's stems (``truth/trees.csv``, match within
     0.5 m, ``sim.evaluate``): stems visible from >= 2 scans and how many were found, matched
-    trees with a DBH, DBH RMSE and bias (cm)."""
+    trees with a DBH, DBH RMSE and bias (cm), and the list's rows matched to no stem (crown
+    parts, branches, understorey)."""
     truth = root / "truth" / "trees.csv"
     if not truth.exists() or not (out / "trees.csv").exists():
         return None
@@ -571,14 +572,16 @@ def tree_scores(root: Path, out: Path) -> dict | None:
 
     from forestmap_assets.sim.evaluate import match_trees
 
-    m = match_trees(pd.read_csv(out / "trees.csv"), pd.read_csv(truth), 0.5)
+    trees = pd.read_csv(out / "trees.csv")
+    m = match_trees(trees, pd.read_csv(truth), 0.5)
     seen = m[m["n_visible_scans"] >= 2]
     dbh = m[m["est_dbh_m"].notna()]
     err = 100.0 * (dbh["est_dbh_m"] - dbh["dbh_m"]).to_numpy(float)
     return {"stems": len(m), "visible_2": len(seen), "found_2": int(seen["est_x"].notna().sum()),
             "with_dbh": len(dbh), "dbh_rmse_cm": float((err**2).mean() ** 0.5) if err.size else None,
             "dbh_bias_cm": float(err.mean()) if err.size else None,
-            "dbh_max_cm": float(abs(err).max()) if err.size else None}
+            "dbh_max_cm": float(abs(err).max()) if err.size else None,
+            "rows": len(trees), "rows_unmatched": int(len(trees) - m["est_x"].notna().sum())}
 
 
 def refinement_outcome(case: dict, home: Path, lines) -> list[dict]:
@@ -744,14 +747,17 @@ def report(cases: list[dict], meta: dict) -> str:
     if scored:
         L += ["", "**Trees** (forestmap's `trees.csv` against the simulator's stems, matched within "
               "0.5 m; found = stems the simulator counts as visible from >= 2 scans that have a "
-              "tree; DBH over every matched tree with one; Sylva's `coregister` makes no tree list):",
+              "tree; DBH over every matched tree with one; rows on no stem: the list's rows matched "
+              "to no stem, crown parts, branches and understorey; Sylva's `coregister` makes no tree list):",
               "", "| survey | stems | visible from >= 2 scans | found | trees with DBH | "
-              "DBH RMSE cm | DBH bias cm | largest DBH error cm |", "|---|---|---|---|---|---|---|---|"]
+              "DBH RMSE cm | DBH bias cm | largest DBH error cm | rows / on no stem |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for c in scored:
             t = c["forestmap"]["trees"]
             L.append(f"| {case_name(c)} | {t['stems']} | {t['visible_2']} | {t['found_2']} | "
                      f"{t['with_dbh']} | {_f(t['dbh_rmse_cm'], '{:.2f}')} | "
-                     f"{_f(t['dbh_bias_cm'], '{:+.2f}')} | {_f(t['dbh_max_cm'])} |")
+                     f"{_f(t['dbh_bias_cm'], '{:+.2f}')} | {_f(t['dbh_max_cm'])} | "
+                     f"{t.get('rows', '-')} / {t.get('rows_unmatched', '-')} |")
     sig = [c for c in cases if c["forestmap"].get("pose_sd")]
     if sig:
         L += ["", "**forestmap's pose sigmas** (`poses.csv` sd against the true error, every placed "

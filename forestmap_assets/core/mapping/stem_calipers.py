@@ -317,23 +317,42 @@ def tree_calipers(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd
                        side_min=tp.caliper_side_min)
 
 
-def tree_edges(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp) -> pd.DataFrame:
-    """:func:`silhouette_edges` (``EDGE_COLUMNS``) of ``stems`` in every placed scan's range
-    image in ``tables``."""
+def edge_candidates(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame,
+                    tp) -> dict[str, np.ndarray]:
+    """Per placed scan of ``tables`` with the edge columns, the rows of its range image that may
+    lie in a silhouette's gate about ``stems`` (:class:`~.stem_slices.StemCells`): the same
+    rows serve any gates no wider, as :func:`silhouette_edges` tests each row's reach."""
     radius = np.nan_to_num(stems["radius_m"].to_numpy(float), nan=0.0)
     reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m
     half = tp.caliper_half_height_m
     centre, zbh = stems[["x", "y"]].to_numpy(float), stems["zbh"].to_numpy(float)
     placed = poses.assign(scan=poses["scan"].astype(str)).set_index("scan")
-    parts = []
+    out = {}
     for sid, tbl in tables.items():
         if not len(stems) or sid not in placed.index or not set(EDGE_COLUMNS_NEEDED) <= set(tbl.column_names):
             continue
         pose = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
         local = (centre - pose[:2]) @ rot_z(pose[3])[:2, :2]  # the stems in the scan's frame
         cells = StemCells(local, zbh - pose[2], reach + MAX_SLOPE * half, half)
-        near = cells.near(*(tbl.column(a).to_numpy() for a in "xyz"))
-        e = silhouette_edges(tbl, pose, stems, half_height_m=half, reach_m=reach, candidates=near,
+        out[sid] = cells.near(*(tbl.column(a).to_numpy() for a in "xyz"))
+    return out
+
+
+def tree_edges(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp,
+               candidates: Mapping[str, np.ndarray] | None = None) -> pd.DataFrame:
+    """:func:`silhouette_edges` (``EDGE_COLUMNS``) of ``stems`` in every placed scan's range
+    image in ``tables``; ``candidates``: :func:`edge_candidates` of gates at least as wide."""
+    radius = np.nan_to_num(stems["radius_m"].to_numpy(float), nan=0.0)
+    reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m
+    half = tp.caliper_half_height_m
+    placed = poses.assign(scan=poses["scan"].astype(str)).set_index("scan")
+    candidates = edge_candidates(tables, poses, stems, tp) if candidates is None else candidates
+    parts = []
+    for sid, tbl in tables.items():
+        if sid not in candidates:
+            continue
+        pose = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
+        e = silhouette_edges(tbl, pose, stems, half_height_m=half, reach_m=reach, candidates=candidates[sid],
                              beam_exit_m=tp.beam_exit_m, beam_divergence_rad=1e-3 * tp.beam_divergence_mrad,
                              edge_step_m=tp.caliper_edge_step_m)
         parts.append(e.assign(scan=sid))
@@ -371,7 +390,8 @@ def outline_refs(trees: pd.Series, calipers: pd.DataFrame, weight: float, tp) ->
 def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,
               clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, tp,
               images: Mapping[str, pa.Table] | None = None, breast_height_m: float = 1.3,
-              splats: Mapping[str, tuple[float, float]] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+              splats: Mapping[str, tuple[float, float]] | None = None,
+              candidates: Mapping[str, np.ndarray] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The trees' DBH from the merged slices (:func:`~.stem_slices.merged_slice_dbh`, same
     arguments) gathered about ``stems`` (:func:`~.stem_slices.slice_stems`, their ``radius_m``
     the gates' anchors: :func:`~.tree_dbh.tree_dbh`), blended with the silhouettes' widths
@@ -384,7 +404,8 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
     ``dbh_note`` says so. ``splats``: the scans whose splat widening the slices and sides take
     back (:func:`~.slice_splats.splat_steps`); with any, the campaign widening beyond the slice
     trees' range tapers off instead of following the cylinders, whose arcs kept the splats
-    (:mod:`.slice_splats`)."""
+    (:mod:`.slice_splats`). ``candidates``: the images' rows :func:`tree_edges` may look at
+    (:func:`edge_candidates`), if the caller has them."""
     with_outline = bool(tp.calipers and images and tp.outline_ref_sd_m > 0)
     slices, sensors = slice_points(clouds, poses, stems, tp, gather_half_height(tp) if with_outline else None, splats)
     out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems,
@@ -393,7 +414,7 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
     fits["caliper_lone_sides"] = False
     if not (tp.calipers and images):
         return out, fits
-    edges = splat_edges_back(tree_edges(images, poses, stems, tp), splats)
+    edges = splat_edges_back(tree_edges(images, poses, stems, tp, candidates), splats)
     calipers = tree_calipers(images, poses, stems, tp, edges=edges)
     widening = Widening()
     if tp.caliper_widening == "campaign" and len(edges):

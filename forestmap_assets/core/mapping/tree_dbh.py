@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.mapping.stem_calipers import dbh_about
+from forestmap_assets.core.mapping.stem_calipers import dbh_about, edge_candidates
 from forestmap_assets.core.mapping.stem_slices import slice_stems
 from forestmap_assets.core.mapping.trees import drop_trees, nested_trees
 
@@ -57,24 +57,36 @@ def tree_dbh(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray, cl
     if tp.overlap_margin_m > 0:
         gone = nested_trees(out, tp.overlap_share, tp.overlap_margin_m, prefer="thicker")
         if gone.any():
+            anchors = fits["anchor_dbh_m"].to_numpy(float)[~gone] / 2
             trees, tree_of_cyl = drop_trees(trees, tree_of_cyl, gone)
-            out, fits = _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats)
+            out, fits = _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats,
+                                  anchors)
     return out, fits
 
 
-def _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats):
+def _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats, anchors=None):
     """:func:`~.stem_calipers.dbh_about` gathered again about each tree's DBH while it moves
-    (module docstring, anchors)."""
+    (module docstring, anchors), from the radii ``anchors`` where given (a tree list measured
+    before), else from the cylinders' and the probe's."""
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
     start = stems["radius_m"].to_numpy(float)
-    out, fits = dbh_about(stems, trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats)
+    # the images' rows within the widest gates any pass may take, found once
+    rows = (edge_candidates(images, poses, stems.assign(radius_m=max(1.0, tp.anchor_max_share) * start), tp)
+            if tp.calipers and images else None)
+
+    def about(stems):
+        return dbh_about(stems, trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats, rows)
+
+    if anchors is not None:
+        stems = stems.assign(radius_m=np.where(start > 0, anchors, start))
+    out, fits = about(stems)
     # no silhouette width within the gates: none, or single sides only
-    no_width = (fits["caliper_scans"].to_numpy() == 0) | fits["caliper_lone_sides"].to_numpy(bool)
-    probe = no_width & (start > 0) if tp.anchor_passes and images else None
-    if probe is not None and tp.anchor_probe > 1 and probe.any():
-        wide = min(tp.anchor_probe, tp.anchor_max_share) * start
-        stems = stems.assign(radius_m=np.where(probe, wide, start))
-        out, fits = dbh_about(stems, trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats)
+    if anchors is None and tp.anchor_passes and images and tp.anchor_probe > 1:
+        probe = ((fits["caliper_scans"].to_numpy() == 0) | fits["caliper_lone_sides"].to_numpy(bool)) & (start > 0)
+        if probe.any():
+            wide = min(tp.anchor_probe, tp.anchor_max_share) * start
+            stems = stems.assign(radius_m=np.where(probe, wide, start))
+            out, fits = about(stems)
     for _ in range(tp.anchor_passes):
         anchor = stems["radius_m"].to_numpy(float)
         new = np.minimum(out["dbh_m"].to_numpy(float) / 2, tp.anchor_max_share * start)
@@ -82,7 +94,7 @@ def _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_
         if not moved.any():
             break
         stems = stems.assign(radius_m=np.where(moved, new, anchor))
-        out, fits = dbh_about(stems, trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats)
+        out, fits = about(stems)
     fits["anchor_dbh_m"] = 2 * stems["radius_m"].to_numpy(float)
     anchored = np.flatnonzero(np.abs(stems["radius_m"].to_numpy(float) - start) > 1e-9)
     if len(anchored):
