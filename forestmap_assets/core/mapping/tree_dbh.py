@@ -81,7 +81,7 @@ def _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_
         stems = stems.assign(radius_m=np.where(start > 0, anchors, start))
     out, fits = about(stems)
     # no silhouette width within the gates: none, or single sides only
-    if anchors is None and tp.anchor_passes and images and tp.anchor_probe > 1:
+    if anchors is None and rows is not None and tp.anchor_passes and tp.anchor_probe > 1:
         probe = ((fits["caliper_scans"].to_numpy() == 0) | fits["caliper_lone_sides"].to_numpy(bool)) & (start > 0)
         if probe.any():
             wide = min(tp.anchor_probe, tp.anchor_max_share) * start
