@@ -399,9 +399,9 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
     given, then with one outline fitted to the slice and the silhouette sides together
     (:mod:`.stem_outline`, ``tp.outline_ref_sd_m``). With ``tp.caliper_widening`` "campaign"
     the edges first lose :func:`~.silhouette_widening.campaign_widening`. The fits gain
-    ``caliper_dbh_m, caliper_sd_m, caliper_scans, caliper_lone_sides, caliper_widening_m, caliper_widening_per_m,
-    caliper_widening_far_m`` (and ``outline_dbh_m, outline_sd_m``); a blended tree's
-    ``dbh_note`` says so. ``splats``: the scans whose splat widening the slices and sides take
+    ``caliper_dbh_m, caliper_sd_m, caliper_scans, caliper_lone_sides, caliper_widening_m,
+    caliper_widening_per_m, caliper_widening_far_m`` (and ``outline_dbh_m, outline_sd_m``); a
+    blended tree's ``dbh_note`` says so. ``splats``: the scans whose splat widening the slices and sides take
     back (:func:`~.slice_splats.splat_steps`); with any, the campaign widening beyond the slice
     trees' range tapers off instead of following the cylinders, whose arcs kept the splats
     (:mod:`.slice_splats`). ``candidates``: the images' rows :func:`tree_edges` may look at

@@ -400,9 +400,7 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
         return {}
     half = gather_half_height(tp)
     centre = trees[["x", "y"]].to_numpy(float)
-    # the widest gate a tree's anchor may take (tree_dbh.py)
-    grow = max(1.0, tp.anchor_max_share) if tp.anchor_passes > 0 else 1.0
-    radius = grow * np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
+    radius = widest_anchor(tp) * np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
     reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m + MAX_SLOPE * half
     placed = poses.assign(scan=poses["scan"].astype(str)).set_index("scan")
     out = {}
@@ -416,6 +414,12 @@ def slice_clouds(tables: Mapping[str, pa.Table], poses: pd.DataFrame, trees: pd.
         near = cells.near(*cols)
         out[sid] = np.column_stack([a[near] for a in cols])
     return out
+
+
+def widest_anchor(tp) -> float:
+    """The widest radius a tree's gates may take, as a share of the cylinders' (the anchors of
+    :func:`~.tree_dbh.tree_dbh`, ``tp.anchor_max_share``; 1 without them)."""
+    return max(1.0, tp.anchor_max_share) if tp.anchor_passes > 0 else 1.0
 
 
 def slice_stems(trees: pd.DataFrame, cyl: pd.DataFrame, tree_of_cyl: np.ndarray,

@@ -38,7 +38,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.mapping.stem_calipers import dbh_about, edge_candidates
-from forestmap_assets.core.mapping.stem_slices import slice_stems
+from forestmap_assets.core.mapping.stem_slices import slice_stems, widest_anchor
 from forestmap_assets.core.mapping.trees import drop_trees, nested_trees
 
 if TYPE_CHECKING:
@@ -71,7 +71,7 @@ def _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_
     stems = slice_stems(trees, cyl, tree_of_cyl, breast_height_m)
     start = stems["radius_m"].to_numpy(float)
     # the images' rows within the widest gates any pass may take, found once
-    rows = (edge_candidates(images, poses, stems.assign(radius_m=max(1.0, tp.anchor_max_share) * start), tp)
+    rows = (edge_candidates(images, poses, stems.assign(radius_m=widest_anchor(tp) * start), tp)
             if tp.calipers and images else None)
 
     def about(stems):

@@ -455,13 +455,15 @@ def nested_trees(trees: pd.DataFrame, overlap_share: float = 0.0, margin_m: floa
     pairs = cKDTree(xy).query_pairs(r=reach, output_type="ndarray")
     d = np.hypot(*(xy[pairs[:, 0]] - xy[pairs[:, 1]]).T) if len(pairs) else np.zeros(0)
     n_cyl = trees["n_cylinders"].to_numpy(int)
+
+    def rank(i):  # who stays: a DBH first, then more cylinders or the thicker
+        return (r[i] > 0, n_cyl[i], r[i]) if prefer == "cylinders" else (r[i] > 0, r[i], n_cyl[i])
+
     for (i, j), dij in sorted(zip(map(tuple, pairs), d, strict=True), key=lambda t: t[1]):
         big, small = max(r[i], r[j]), min(r[i], r[j])
         if gone[i] or gone[j] or dij >= big + overlap_share * small + margin_m:
             continue
-        rank_i = (r[i] > 0, n_cyl[i], r[i]) if prefer == "cylinders" else (r[i] > 0, r[i], n_cyl[i])
-        rank_j = (r[j] > 0, n_cyl[j], r[j]) if prefer == "cylinders" else (r[j] > 0, r[j], n_cyl[j])
-        gone[i if rank_i < rank_j else j] = True
+        gone[i if rank(i) < rank(j) else j] = True
     return gone
 
 
