@@ -14,7 +14,9 @@ whose one cylinder below breast height read 13.1 cm: 15.2 cm, now 23.3 (results.
 A tree whose gates keep no scan's two silhouette sides (no width, or single sides only: the
 gate about a small, off-centre axis cut the far edges) has nothing to move it, so it is first
 gathered about ``tp.anchor_probe`` (1.5) times the cylinders' radius, and the anchors follow
-from there (back to the cylinders' where that finds no more). Own realistic seed 159: a 24.8 cm
+from there (back to the cylinders' where that finds no more, or only single sides: their
+distance is measured from the axis, not across the stem, and own realistic 161 ran to 38.7 cm
+for a 24.8 cm stem following them). Own realistic seed 159: a 24.8 cm
 stem seen by five scans, its cylinders 17.0 cm, read 17.0 with no width, now 25.1; seed 156 a
 21.7 cm stem 15.3 from two single sides, now 22.6 (results.md "anchor_probe").
 
@@ -89,7 +91,9 @@ def _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_
             out, fits = about(stems)
     for _ in range(tp.anchor_passes):
         anchor = stems["radius_m"].to_numpy(float)
-        new = np.minimum(out["dbh_m"].to_numpy(float) / 2, tp.anchor_max_share * start)
+        # single silhouette sides measure from the axis, not across the stem: no anchor to follow
+        new = np.where(fits["caliper_lone_sides"].to_numpy(bool), start, out["dbh_m"].to_numpy(float) / 2)
+        new = np.minimum(new, tp.anchor_max_share * start)
         moved = np.isfinite(new) & (anchor > 0) & (np.abs(new - anchor) > tp.anchor_share * anchor)
         if not moved.any():
             break
