@@ -60,6 +60,7 @@ def mapping_assets(campaign: Campaign) -> list:
     from forestmap_assets.core.mapping.levelling import widen_levelled_links
     from forestmap_assets.core.mapping.link_selection import select_links
     from forestmap_assets.core.mapping.objective_scale import (
+        gap_scale,
         objective_scale,
         scale_floor,
         scale_sd,
@@ -132,7 +133,7 @@ def mapping_assets(campaign: Campaign) -> list:
         rp = params.refine
         floor = scale_floor(mp.scale_sd_floor, mp.wide_beam_scale_sd_floor, rp.beam_divergence_mrad,
                             rp.symmetric_max_divergence_mrad)
-        poses = scale_sd(with_variance_factors(poses, factors), max(abs(sigma_scale), mp.stem_gap_share * abs(gap)), floor)
+        poses = scale_sd(with_variance_factors(poses, factors), max(abs(sigma_scale), gap_scale(gap, mp.stem_gap_share, mp.stem_gap_free)), floor)
         splats = scan_splats(pairs.get("refinements"))  # the tree list takes them back from the slices
         poses["splat_m"] = poses["scan"].astype(str).map(splats).fillna(0.0).astype(float)
         bundle = {"poses": poses, "links": links, "residuals": residuals}

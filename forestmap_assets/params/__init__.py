@@ -153,6 +153,8 @@ class MappingParams(_Stage):
     # the scans' scale sigma at least this share of the stems' and the refined links' difference
     # per metre (objective_scale.stem_gap; 0: off)
     stem_gap_share: float = 0.0
+    # ... of the part of the gap beyond this (per metre): the stems' own bias (objective_scale.gap_scale)
+    stem_gap_free: float = 0.0
     variance_factor_min_dof: int = 0  # sigmas x root of the variance factor > 1 from this many redundant links
     # x, y, z, heading correlation of (b&b, refined) links sharing a scan (0: the thesis; sigmas)
     scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
@@ -324,11 +326,13 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # (results.md "scale_kept_in"; it had helped before, "scale_taken_out"). Refined links'
         # z correlation 0.2 -> 0.3: renders' z is shared by a scan's links (a reference 0.3 mm
         # off), new render kinds' z error / sd 1.23 (84 % in 2 sd) -> 1.15 (92 %) ("z_correlation")
-        # stem_gap_share: half the stems' and raw points' scale difference ("stem_gap")
+        # stem_gap_share: half the stems' and raw points' scale difference ("stem_gap") beyond
+        # 0.3 mm/m, the stems' own bias (Sylva's +0.14 to +0.37: x, y error / sd 0.66 / 0.65 on
+        # Sylva 94-100; scale floor 0.06 mm/m, Sylva's networks' RMS; results.md "gap_free")
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05), "z_residual_sigmas": 5.0,
                     "refined_scan_correlation": (0.1, 0.1, 0.3, 0.25),
-                    "scale_sd_floor": 8e-5, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3,
-                    "stem_gap_share": 0.5},
+                    "scale_sd_floor": 6e-5, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3,
+                    "stem_gap_share": 0.5, "stem_gap_free": 3e-4},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         # Huber weights (k 1.345, sigma x 1.3): scans' heading error RMS own realistic 0.0085 ->

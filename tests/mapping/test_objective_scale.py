@@ -6,6 +6,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.mapping.objective_scale import (
+    gap_scale,
     objective_scale,
     scale_floor,
     scale_sd,
@@ -102,3 +103,12 @@ def test_the_stems_gap_is_their_mean_lengthening_per_metre_over_the_refined_link
     links.loc[:5, "refined"] = False
     assert stem_gap(links, refinements) == (0.0, 2)
     assert stem_gap(links, None) == (0.0, 0)
+
+
+def test_only_the_gap_beyond_the_stems_own_bias_is_a_scale_sigma():
+    # Sylva's stems put baselines 0.14-0.37 mm/m longer on their own: no scale sigma from that
+    assert gap_scale(+0.00025, 0.5, 3e-4) == 0.0
+    assert gap_scale(-0.0003, 0.5, 3e-4) == 0.0
+    # a render with 1 cm noise and 12 mm splats parted by -0.65 mm/m: half of the 0.35 beyond
+    assert np.isclose(gap_scale(-0.00065, 0.5, 3e-4), 0.000175)
+    assert np.isclose(gap_scale(-0.00065, 0.5), 0.000325)  # no allowance: half the gap

@@ -29,7 +29,10 @@ their mean difference per metre over the refined links (:func:`stem_gap`,
 ``mapping.stem_gap_share``) is a floor of the scans' scale sigma: error / sd x, y on renders with
 1 cm noise and 12 mm splats 2.13 / 2.18 -> 0.97 / 0.95, with 12 mm splats 1.95 / 2.66 -> 1.23 /
 1.53; Sylva 44-79 0.93 / 0.99 -> 0.87 / 0.91, own realistic 0.97 / 1.09 -> 0.93 / 1.04, renders
-0.87 / 0.80 -> 0.83 / 0.77 (117 stored surveys; results.md "stem_gap")."""
+0.87 / 0.80 -> 0.83 / 0.77 (117 stored surveys; results.md "stem_gap"). Only the part of the gap
+beyond ``mapping.stem_gap_free`` (0.3 mm/m) counts (:func:`gap_scale`): the stems' own bias
+on Sylva's simulator, +0.14 to +0.37 mm/m, had made Sylva 94-100's x, y sigmas 1.5 times too
+wide (error / sd 0.66 / 0.65, now 0.79 / 0.78; results.md "gap_free")."""
 
 from __future__ import annotations
 
@@ -111,6 +114,12 @@ def stem_gap(links: pd.DataFrame, refinements: pd.DataFrame | None, min_links: i
         return 0.0, int(ok.sum())
     gap = ((m["bnb_dx"].to_numpy(float) - dx) * dx + (m["bnb_dy"].to_numpy(float) - dy) * dy)[ok] / length2[ok]
     return float(gap.mean()), int(ok.sum())
+
+
+def gap_scale(gap: float, share: float, free: float = 0.0) -> float:
+    """The network scale sigma (per metre) the stems' gap ``gap`` (:func:`stem_gap`) says:
+    ``share`` of the part of ``|gap|`` beyond ``free``, the gap the stems' own bias leaves."""
+    return share * max(abs(gap) - free, 0.0)
 
 
 def widen_links(links: pd.DataFrame, scale: float) -> pd.DataFrame:
