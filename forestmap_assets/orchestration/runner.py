@@ -276,6 +276,10 @@ def _run(
             # candidate_pairs runs with what does not read pairs: its pairs come next. retry_pairs
             # runs with the stages after it: it usually lists nothing, and when it lists pairs,
             # they run and the stages after them run again
+            if map_ready is not None and level - explore:
+                # the map's stages first: where to scan next runs beside its files (a re-run
+                # where only the campaign's stages changed had next_vantage_points before them)
+                level -= explore
             if PAIR_LISTS[0] in level:
                 level = (level - after_pairs) | {PAIR_LISTS[0]}
             if pairs:  # the pair lists first, then the pairs, then what reads them

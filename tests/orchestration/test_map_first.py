@@ -11,10 +11,16 @@ from forestmap_assets.orchestration.runner import run_campaign
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("workers", [2, 1])
-def test_map_ready_comes_before_next_vantage_points(tmp_path, monkeypatch, workers):
+@pytest.mark.parametrize(("workers", "params"), [
+    (2, {"trees": {"dbh_method": "cylinders"}}),  # a new tree list
+    (1, {"trees": {"dbh_method": "cylinders"}}),
+    # new sigmas, a new integrated map: its readers tree_list and next_vantage_points fall due
+    # together, and the tree list still goes first
+    (2, {"mapping": {"scale_sd_floor": 5e-4}}),
+])
+def test_map_ready_comes_before_next_vantage_points(tmp_path, monkeypatch, workers, params):
     root = materialised_copy(tmp_path, monkeypatch)
-    edit_manifest(root, params={"trees": {"dbh_method": "cylinders"}})  # a new tree list
+    edit_manifest(root, params=params)
     seen = []
 
     def map_ready(summary):
