@@ -159,6 +159,9 @@ class MappingParams(_Stage):
     # x, y, z, heading correlation of (b&b, refined) links sharing a scan (0: the thesis; sigmas)
     scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     refined_scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    # z correlation of refined links with no footprint effect: the campaign's beam not wide
+    # (refine.symmetric_max_divergence_mrad) and no splat taken back (None: as the others)
+    footprint_free_z_correlation: float | None = None
     # scans levelled from shared stems (core/mapping/levelling) at a tilt this large and this many sd;
     # a levelled scan's tilt sd (at least the floor) widens its links' z sd by baseline x sd
     levelling: bool = True
@@ -328,11 +331,14 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # off), new render kinds' z error / sd 1.23 (84 % in 2 sd) -> 1.15 (92 %) ("z_correlation")
         # stem_gap_share: half the stems' and raw points' scale difference ("stem_gap") beyond
         # 0.3 mm/m, the stems' own bias (Sylva's +0.14 to +0.37: x, y error / sd 0.66 / 0.65 on
-        # Sylva 94-100; scale floor 0.06 mm/m, Sylva's networks' RMS; results.md "gap_free")
+        # Sylva 94-100; scale floor 0.06 mm/m, Sylva's networks' RMS; results.md "gap_free").
+        # Refined links' z errors correlate by 0.28 / 0.33 among links sharing a scan where a
+        # wide beam or splats meet the ground (own realistic, rendered), 0.11 on Sylva's:
+        # footprint_free_z_correlation 0.1 (results.md "footprint_z")
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05), "z_residual_sigmas": 5.0,
                     "refined_scan_correlation": (0.1, 0.1, 0.3, 0.25),
                     "scale_sd_floor": 6e-5, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3,
-                    "stem_gap_share": 0.5, "stem_gap_free": 3e-4},
+                    "stem_gap_share": 0.5, "stem_gap_free": 3e-4, "footprint_free_z_correlation": 0.1},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
         # Huber weights (k 1.345, sigma x 1.3): scans' heading error RMS own realistic 0.0085 ->

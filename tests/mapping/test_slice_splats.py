@@ -7,7 +7,12 @@ import pandas as pd
 import pyarrow as pa
 import pytest
 
-from forestmap_assets.core.mapping.slice_splats import scan_splats, splat_edges_back, splat_steps
+from forestmap_assets.core.mapping.slice_splats import (
+    link_splats,
+    scan_splats,
+    splat_edges_back,
+    splat_steps,
+)
 from forestmap_assets.core.mapping.stem_slices import gather_slices, slice_dbh
 from forestmap_assets.sim.cloud_render import render_scan
 
@@ -24,6 +29,16 @@ def test_scan_splats_are_the_median_over_refined_pairs():
     tables = {s: pa.table({"x": [0.0]}).replace_schema_metadata({"azimuth_deg": "[0.0, 0.1, 0.2]"}) for s in "ABD"}
     steps = splat_steps(poses, tables)
     assert list(steps) == ["A"] and steps["A"] == pytest.approx((0.008, STEP))
+
+
+
+def test_each_link_has_the_splat_its_refinement_took_back():
+    ref = pd.DataFrame({"scan": ["B", "C", "D"], "reference": ["A", "A", "A"],
+                        "used": ["refined", "refined", "branch_and_bound"], "splat_m": [0.007, 0.0, 0.009]})
+    links = pd.DataFrame({"scan": ["D", "C", "B", "E"], "reference": ["A", "A", "A", "A"]})
+    # D kept its branch-and-bound pose and E has no refinement: no splat taken back on them
+    assert link_splats(links, ref).tolist() == [0.0, 0.0, 0.007, 0.0]
+    assert link_splats(links, None).tolist() == [0.0] * 4
 
 
 def test_a_stems_slice_loses_most_of_the_splats_widening():

@@ -41,6 +41,16 @@ def scan_splats(refinements: pd.DataFrame | None) -> dict[str, float]:
     return {str(s): float(v) for s, v in both.groupby("scan")["splat_m"].median().items()}
 
 
+def link_splats(links: pd.DataFrame, refinements: pd.DataFrame | None) -> np.ndarray:
+    """Each link's splat radius (m) its refinement took back (``splat_m`` of the pair's refined
+    row; 0 where none, or where the pair was not refined)."""
+    if refinements is None or refinements.empty or "splat_m" not in refinements or links.empty:
+        return np.zeros(len(links))
+    used = refinements[refinements["used"] == "refined"].drop_duplicates(["scan", "reference"])
+    m = links[["scan", "reference"]].merge(used[["scan", "reference", "splat_m"]], on=["scan", "reference"], how="left")
+    return np.nan_to_num(m["splat_m"].to_numpy(float))
+
+
 def splat_back(xy: np.ndarray, sensor_xy: np.ndarray, centre_xy: np.ndarray, range_m: np.ndarray,
                splat_m: float, step_rad: float) -> np.ndarray:
     """Slice points ``xy`` (n, 2, global) seen from ``sensor_xy`` (2,) at ranges ``range_m``,
