@@ -70,7 +70,7 @@ def mapping_assets(campaign: Campaign) -> list:
     )
     from forestmap_assets.core.mapping.optimal_map import RHO_COLUMNS
     from forestmap_assets.core.mapping.residuals import variance_factors, with_variance_factors
-    from forestmap_assets.core.mapping.slice_splats import link_splats, scan_splats
+    from forestmap_assets.core.mapping.slice_splats import scan_splats, shared_scan_correlations
     from forestmap_assets.core.mapping.trees import beam_options, cylinders_to_global, merge_trees
 
     params = campaign.params
@@ -119,15 +119,10 @@ def mapping_assets(campaign: Campaign) -> list:
             poses = poses_table(campaign, chained.poses)
             links, residuals = chained.links, chained.residuals
         else:
-            refined = accepted["refined"].to_numpy(bool)[:, None] if "refined" in accepted else False
-            rho = np.array(np.broadcast_to(np.where(refined, mp.refined_scan_correlation, mp.scan_correlation),
-                                           (len(accepted), 4)), dtype=float)
             wide = params.refine.beam_divergence_mrad > params.refine.symmetric_max_divergence_mrad
-            if mp.footprint_free_z_correlation is not None and not wide and len(accepted):
-                free = ((accepted["refined"].to_numpy(bool) if "refined" in accepted else np.zeros(len(accepted), bool))
-                        & ~(link_splats(accepted, pairs.get("refinements")) > 0))
-                rho[free, 2] = mp.footprint_free_z_correlation
-            accepted[list(RHO_COLUMNS)] = rho
+            accepted[list(RHO_COLUMNS)] = shared_scan_correlations(
+                accepted, pairs.get("refinements"), mp.scan_correlation, mp.refined_scan_correlation,
+                mp.footprint_free_z_correlation, wide)
             sel = select_links(accepted, reference, scans=campaign.scan_ids, confidence="confidence",
                                covariance=mp.covariance, iterate=mp.iterate,
                                residual_sigmas=mp.residual_sigmas, z_residual_sigmas=mp.z_residual_sigmas,

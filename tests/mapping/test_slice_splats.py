@@ -10,6 +10,7 @@ import pytest
 from forestmap_assets.core.mapping.slice_splats import (
     link_splats,
     scan_splats,
+    shared_scan_correlations,
     splat_edges_back,
     splat_steps,
 )
@@ -31,7 +32,6 @@ def test_scan_splats_are_the_median_over_refined_pairs():
     assert list(steps) == ["A"] and steps["A"] == pytest.approx((0.008, STEP))
 
 
-
 def test_each_link_has_the_splat_its_refinement_took_back():
     ref = pd.DataFrame({"scan": ["B", "C", "D"], "reference": ["A", "A", "A"],
                         "used": ["refined", "refined", "branch_and_bound"], "splat_m": [0.007, 0.0, 0.009]})
@@ -39,6 +39,19 @@ def test_each_link_has_the_splat_its_refinement_took_back():
     # D kept its branch-and-bound pose and E has no refinement: no splat taken back on them
     assert link_splats(links, ref).tolist() == [0.0, 0.0, 0.007, 0.0]
     assert link_splats(links, None).tolist() == [0.0] * 4
+
+
+def test_refined_links_with_no_footprint_share_less_of_a_scans_z():
+    ref = pd.DataFrame({"scan": ["B", "C"], "reference": ["A", "A"], "used": ["refined", "refined"],
+                        "splat_m": [0.007, 0.0]})
+    links = pd.DataFrame({"scan": ["B", "C", "D"], "reference": ["A", "A", "A"], "refined": [True, True, False]})
+    branch, refined = (0.25, 0.25, 0.15, 0.05), (0.1, 0.1, 0.3, 0.25)
+    rho = shared_scan_correlations(links, ref, branch, refined, footprint_free_z=0.1)
+    # B took a splat back, C took none, D kept its branch-and-bound pose
+    assert rho.tolist() == [list(refined), [0.1, 0.1, 0.1, 0.25], list(branch)]
+    assert shared_scan_correlations(links, ref, branch, refined, 0.1, wide_beam=True)[1, 2] == 0.3
+    assert shared_scan_correlations(links, ref, branch, refined)[1, 2] == 0.3
+    assert shared_scan_correlations(links.drop(columns="refined"), ref, branch, refined, 0.1).tolist() == [list(branch)] * 3
 
 
 def test_a_stems_slice_loses_most_of_the_splats_widening():
