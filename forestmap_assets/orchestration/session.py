@@ -30,6 +30,7 @@ from forestmap_assets.orchestration.events import step_failure_reason
 from forestmap_assets.orchestration.instance import (
     sync_pair_partitions,
 )
+from forestmap_assets.orchestration.priority import background
 from forestmap_assets.orchestration.status import (
     changed_pair_inputs,
     observe_pair_inputs,
@@ -302,7 +303,7 @@ class Session:
     def run_late_campaign(self, stages: list[str]) -> None:
         """One campaign-level run of ``stages`` left running in a worker (:attr:`can_run_late`),
         collected by :meth:`wait_late` (issue 16: next_vantage_points beside the map's files)."""
-        fut = self._in_process_pool().submit(_partition_worker, self._base(), "campaign", None, stages, 1)
+        fut = self._in_process_pool().submit(_partition_worker, self._base(), "campaign", None, stages, 1, True)
         self.pending.update({(stage, None): fut for stage in stages})
 
     def late_done(self) -> bool:
@@ -354,7 +355,7 @@ class Session:
         base = self._base()
         futures = [pool.submit(_partition_worker, base, kind, part, stages, n) for part, stages in todo.items()]
         for part, stages in (late or {}).items():
-            fut = pool.submit(_partition_worker, base, "scan", part, stages, n)
+            fut = pool.submit(_partition_worker, base, "scan", part, stages, n, True)
             self.pending.update({(stage, part): fut for stage in stages})
         if start is not None:
             start()
@@ -419,9 +420,12 @@ def _warm_worker(base: tuple) -> None:
     _load_worker(base)
 
 
-def _partition_worker(base: tuple, kind: str, part: str | None, stages: list[str], concurrent_runs: int):
+def _partition_worker(
+    base: tuple, kind: str, part: str | None, stages: list[str], concurrent_runs: int, late: bool = False
+):
     """One scan's, pair's or (``part`` None) campaign-level run in a worker process; returns what
-    the parent session records."""
+    the parent session records. ``late``: a where-to-scan-next run, at a lower priority than the
+    map's stages beside it (:mod:`.priority`)."""
     folder, ref, executor, store_url, workers, dask_address, session_id = base
     _load_worker(base)
     session = Session(
@@ -436,6 +440,7 @@ def _partition_worker(base: tuple, kind: str, part: str | None, stages: list[str
         _WORKER["defs"],
     )
     session.session = session_id
-    session.execute(kind, stages, part, concurrent_runs)
+    with background(late):
+        session.execute(kind, stages, part, concurrent_runs)
     s = session.summary
     return s.ran, s.failures, s.check_failures, session.failed, s.run_ids
