@@ -3,6 +3,7 @@ with optional Tukey IRLS and box clamp, and Open3D's point-to-plane ICP from a 4
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -10,6 +11,14 @@ from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_ma
 from forestmap_assets.core.registration.icp_uncertainty import pose_jacobian
 
 MIN_NORMAL_DOT = 0.5  # symmetric pairs: the two normals within 60 deg (the same side of a surface)
+
+
+def _threads() -> int:
+    """Threads of the k-d queries: this process's share of the cores, as its numba kernels have
+    (one in each worker of a 2-core ``forestmap run``). All cores in every worker (scipy's
+    ``workers=-1``) put four query threads on two cores: a rendered survey's refinements took
+    9.4 s, 8.5 s with one thread each (issue 16)."""
+    return max(1, numba.get_num_threads())
 
 
 class Reach:
@@ -24,7 +33,7 @@ class Reach:
     def __init__(self, tree: cKDTree, base: np.ndarray, bound_m: float):
         self.base = np.asarray(base, dtype=np.float64)
         self.bound = float(bound_m)
-        self.d0 = tree.query(self.base, distance_upper_bound=self.bound, workers=-1)[0]
+        self.d0 = tree.query(self.base, distance_upper_bound=self.bound, workers=_threads())[0]
 
     def candidates(self, moved: np.ndarray, radius_m: float) -> np.ndarray | None:
         """Indices of the points that may pair within ``radius_m`` at ``moved`` (None: any may,
@@ -51,10 +60,10 @@ def plane_pairs(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m:
     than 60 deg are left out. ``reach``: query only the points that may pair (:class:`Reach`)."""
     near = None if reach is None else reach.candidates(moved, radius_m)
     if near is None:
-        d, idx = tree.query(moved, distance_upper_bound=radius_m, workers=-1)
+        d, idx = tree.query(moved, distance_upper_bound=radius_m, workers=_threads())
     else:
         d, idx = np.full(len(moved), np.inf), np.full(len(moved), tree.n)
-        d[near], idx[near] = tree.query(moved[near], distance_upper_bound=radius_m, workers=-1)
+        d[near], idx[near] = tree.query(moved[near], distance_upper_bound=radius_m, workers=_threads())
     ok = np.isfinite(d)
     ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
     if moved_normals is not None:
