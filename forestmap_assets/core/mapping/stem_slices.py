@@ -114,15 +114,11 @@ class StemCells:
     def near(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Indices of the points (``x, y, z``, any float dtype) that lie in a marked cell within
         its height band."""
+        from forestmap_assets.core.mapping._slice_kernels import cells_near
+
         z_lo, z_hi = self.z_lo.ravel(), self.z_hi.ravel()
-        idx = np.flatnonzero((z >= z_lo.min()) & (z <= z_hi.max()))
-        fx = (x[idx] - self.lo[0]) / self.cell
-        fy = (y[idx] - self.lo[1]) / self.cell
-        inside = (fx >= 0) & (fy >= 0) & (fx < self.shape[0]) & (fy < self.shape[1])
-        idx, fx, fy = idx[inside], fx[inside], fy[inside]
-        cell = fx.astype(np.int64) * self.shape[1] + fy.astype(np.int64)
-        zi = z[idx]
-        return idx[(zi >= z_lo[cell]) & (zi <= z_hi[cell])]
+        return cells_near(x, y, z, float(self.lo[0]), float(self.lo[1]), float(self.cell), int(self.shape[0]),
+                          int(self.shape[1]), z_lo, z_hi, float(z_lo.min()), float(z_hi.max()))
 
 
 def slice_members(p: np.ndarray, tree: cKDTree, zbh: np.ndarray, slope: np.ndarray, reach: np.ndarray,
