@@ -96,3 +96,20 @@ def test_concurrent_bundle_writers_and_a_reader(tmp_path):
     assert set(final) == {"a", "b"} and final["a"]["v"][0] // 1000 == final["b"]["v"][0]
     assert all(set(b) in ({"a"}, {"a", "b"}) for b in seen)
     assert [p.name for p in UPath(tmp_path).iterdir()] == ["x.bundle"]
+
+
+def test_read_table_gives_one_chunk_a_column(tmp_path):
+    """A table stored in many row groups reads back with each column in one chunk, so that
+    ``to_numpy`` is a view and not a copy at every call (issue 16)."""
+    import numpy as np
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pa.table({"x": np.arange(50_000, dtype=np.float32), "row": np.arange(50_000, dtype=np.int32)})
+    path = tmp_path / "t.parquet"
+    pq.write_table(table, path, row_group_size=5_000)
+    assert pq.read_table(path).column("x").num_chunks > 1
+    got = store.read_table(path, ["x", "row"])
+    assert [got.column(c).num_chunks for c in got.column_names] == [1, 1]
+    assert got.equals(table)
+    assert np.shares_memory(got.column("x").to_numpy(), got.column("x").to_numpy())

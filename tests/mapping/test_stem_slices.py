@@ -298,3 +298,27 @@ def test_a_stray_bin_on_the_side_not_seen_is_left_out():
     fit = slice_dbh(xy, sens, centre, mean_r, loo_sigmas=3.5, **kw)
     assert abs(fit.dbh_m - 2 * mean_r) < 0.005
     assert fit.coverage_deg >= 180.0
+
+
+def test_stem_cells_near_is_the_cells_and_bands_test():
+    """StemCells.near (one numba pass) keeps exactly the points in a marked cell within its
+    height band, any float dtype, NaN nowhere (the numpy statement of the test, written out)."""
+    from forestmap_assets.core.mapping.stem_slices import StemCells
+
+    rng = np.random.default_rng(3)
+    n = 200_000
+    x, y = (rng.uniform(-12, 12, n).astype(np.float32) for _ in range(2))
+    z = rng.uniform(-2, 6, n).astype(np.float32)
+    z[::97], x[5::89] = np.nan, np.nan
+    cells = StemCells(rng.uniform(-9, 9, (25, 2)), rng.uniform(0, 2, 25), rng.uniform(0.2, 0.6, 25), 0.3)
+    for dt in (np.float32, np.float64):
+        xs, ys, zs = (a.astype(dt) for a in (x, y, z))
+        fx = ((xs - cells.lo[0]) / cells.cell).astype(np.float64)
+        fy = ((ys - cells.lo[1]) / cells.cell).astype(np.float64)
+        inside = (fx >= 0) & (fy >= 0) & (fx < cells.shape[0]) & (fy < cells.shape[1])
+        c = np.where(inside, np.nan_to_num(fx).astype(np.int64) * cells.shape[1] + np.nan_to_num(fy).astype(np.int64), 0)
+        z_lo, z_hi = cells.z_lo.ravel()[c], cells.z_hi.ravel()[c]
+        want = np.flatnonzero(inside & (zs >= z_lo) & (zs <= z_hi))
+        got = cells.near(xs, ys, zs)
+        assert want.size > 100
+        assert np.array_equal(got, want)
