@@ -303,7 +303,7 @@ class Session:
     def run_late_campaign(self, stages: list[str]) -> None:
         """One campaign-level run of ``stages`` left running in a worker (:attr:`can_run_late`),
         collected by :meth:`wait_late` (issue 16: next_vantage_points beside the map's files)."""
-        fut = self._in_process_pool().submit(_partition_worker, self._base(), "campaign", None, stages, 1, True)
+        fut = self._in_process_pool().submit(_partition_worker, self._base(), "campaign", None, stages, 1, late=True)
         self.pending.update({(stage, None): fut for stage in stages})
 
     def late_done(self) -> bool:
@@ -355,7 +355,7 @@ class Session:
         base = self._base()
         futures = [pool.submit(_partition_worker, base, kind, part, stages, n) for part, stages in todo.items()]
         for part, stages in (late or {}).items():
-            fut = pool.submit(_partition_worker, base, "scan", part, stages, n, True)
+            fut = pool.submit(_partition_worker, base, "scan", part, stages, n, late=True)
             self.pending.update({(stage, part): fut for stage in stages})
         if start is not None:
             start()
