@@ -66,8 +66,28 @@ def test_data_normals_round_trip_through_the_table():
     assert cloud.data_normals is not None and np.all(cloud.data_normals[:, 2] > 0.9)  # up, toward the sensor
     back = RefineCloud.from_table(cloud.to_table())
     np.testing.assert_array_equal(back.data_normals, cloud.data_normals)
-    plain = RefineCloud.from_points(pts, dataclasses.replace(RefineSettings(), symmetric=False))
+    plain = RefineCloud.from_points(pts, dataclasses.replace(RefineSettings(), symmetric=False,
+                                                             two_way_model_voxel_m=0.0))
     assert RefineCloud.from_table(plain.to_table()).data_normals is None
+
+
+def test_data_points_are_model_points_with_their_normals():
+    """Data voxels coarser than the model's are thinned from the model and keep its normals:
+    the same as a normal estimate at each data point from its k nearest model points."""
+    from forestmap_assets.core.cloud import pca_normals
+
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 2 * np.pi, 30000)
+    h = rng.uniform(-1.5, 1.0, 30000)
+    pts = np.column_stack([4 + 0.3 * np.cos(a), 1 + 0.3 * np.sin(a), h])  # a stem 4 m away
+    s = RefineSettings()
+    cloud = RefineCloud.from_points(pts, s)
+    assert 0 < len(cloud.data) < len(cloud.model)
+    rows = {tuple(p): i for i, p in enumerate(cloud.model)}
+    idx = np.array([rows[tuple(p)] for p in cloud.data])  # every data point is a model point
+    np.testing.assert_array_equal(cloud.data_normals, cloud.normals[idx])
+    direct = pca_normals(cloud.model, s.normal_k, at=cloud.data)[0]
+    assert np.min(np.abs(np.sum(direct * cloud.data_normals, axis=1))) > 0.999
 
 
 def test_beam_sigma_grows_with_the_footprint():

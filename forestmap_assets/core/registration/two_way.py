@@ -102,10 +102,17 @@ class RefineCloud:
         p = np.asarray(xyz, dtype=np.float64)
         p = p[crop_mask(p, s)]
         model = p[voxel_subsample(p, s.two_way_model_voxel_m)] if s.two_way_model_voxel_m and len(p) else p
-        data = p[voxel_subsample(p, s.data_voxel_m)] if s.data_voxel_m and len(p) else p
-        if s.max_data_points and len(data) > s.max_data_points:  # a fixed, seeded thinning
-            data = data[np.sort(np.random.default_rng(0).choice(len(data), s.max_data_points, replace=False))]
-        cloud = cls(data=data, model=model, normals=sensor_normals(model, s.normal_k), step_rad=float(step_rad))
+        normals = sensor_normals(model, s.normal_k)
+        # data voxels at least as coarse as the model's: thinned from the model, whose normals
+        # they keep (each is its own nearest model point, so the same k neighbours): one voxel
+        # pass over the full cloud and one normal estimate fewer (issue 16, 0.3 s a 2 M-point scan)
+        nested = 0 < s.two_way_model_voxel_m <= s.data_voxel_m
+        src, src_normals = (model, normals) if nested else (p, None)
+        keep = voxel_subsample(src, s.data_voxel_m) if s.data_voxel_m and len(src) else np.arange(len(src))
+        if s.max_data_points and len(keep) > s.max_data_points:  # a fixed, seeded thinning
+            keep = keep[np.sort(np.random.default_rng(0).choice(len(keep), s.max_data_points, replace=False))]
+        cloud = cls(data=src[keep], model=model, normals=normals, step_rad=float(step_rad),
+                    data_normals=None if src_normals is None else src_normals[keep])
         return cloud.with_data_normals(s.normal_k) if s.symmetric_pairs else cloud
 
     def to_table(self, colour: bool = False) -> pd.DataFrame:
