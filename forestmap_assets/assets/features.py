@@ -19,7 +19,7 @@ from forestmap_assets.assets.common import (
     scan_partitions,
     timed,
 )
-from forestmap_assets.core.features.range_image import RangeImage
+from forestmap_assets.core.features.range_image import RangeImage, table_points
 from forestmap_assets.io.campaign import Campaign
 from forestmap_assets.outputs.figures.range_images import (
     circle_mask,
@@ -179,7 +179,10 @@ def feature_assets(campaign: Campaign) -> list:
     )
     @timed
     def elevation_maps(context, range_images):
-        table = elevation_grid(_image(range_images), params.elevation, max_distance_m=params.elevation.max_distance_m)
+        # the stored points, not the organised image's (its float64 point image: 95 MB, 0.1 s
+        # on a 2.3 M-point scan); the same points in the same order
+        table = elevation_grid(table_points(range_images), params.elevation,
+                               max_distance_m=params.elevation.max_distance_m)
         meta = {"cells": len(table)}
         if len(table):
             meta.update(z_min=float(np.min(table["z"])), z_max=float(np.max(table["z"])))

@@ -62,12 +62,11 @@ def refine_settings(campaign: Campaign):
 
 def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
     """Levelled points and hue (None without colour) of a stored ``range_images`` table."""
+    from forestmap_assets.core.features.range_image import table_points
     from forestmap_assets.core.registration.colour import rgb_to_hue
 
     names = set(table.column_names)
-    xyz = np.empty((table.num_rows, 3))
-    for i, c in enumerate("xyz"):
-        xyz[:, i] = table.column(c).to_numpy()
+    xyz = table_points(table)
     hue = None
     if {"r", "g", "b"} <= names:
         rgb = np.column_stack([table.column(c).to_numpy() for c in "rgb"]).astype(np.uint8)

@@ -37,11 +37,14 @@ def _as_arrow(obj: pd.DataFrame | pa.Table) -> pa.Table:
 
 
 def _write_parquet(table: pa.Table, f) -> None:
-    """Zstandard-compressed Parquet; dictionary encoding only for columns that are not floating
+    """LZ4-compressed Parquet; dictionary encoding only for columns that are not floating
     point (on coordinates it costs most of the write time and makes the file larger: a range
-    image table writes in 0.09 s instead of 0.55 s, 22 % smaller)."""
+    image table writes in 0.09 s instead of 0.55 s, 22 % smaller). LZ4, not Zstandard: float
+    coordinates hardly compress (a 2.3 M-point range image: 34.0 MB with Zstandard, 38.6 MB with
+    LZ4, 40.5 MB without), and LZ4 writes it in 0.10 s instead of 0.14 s and reads it in 0.03 s
+    instead of 0.06 s (issue 16)."""
     keep = [fl.name for fl in table.schema if not pa.types.is_floating(fl.type)]
-    pq.write_table(table, f, compression="zstd", use_dictionary=keep)
+    pq.write_table(table, f, compression="lz4", use_dictionary=keep)
 
 
 MANIFEST = "_tables.json"  # bundle folder: its table names, written last

@@ -17,3 +17,29 @@ def scatter_points(flat, x, y, z, rot, out):
         a, b, c = np.float64(x[k]), np.float64(y[k]), np.float64(z[k])
         for j in range(3):
             out[p, j] = np.float32(a * rot[0, j] + b * rot[1, j] + c * rot[2, j])
+
+
+@nb.njit(cache=True)
+def gather_points(range_m, points):
+    """The valid pixels (finite range) of an image in row-major order: row, col (int32), range
+    and the float32 points (rows, cols, 3) there, in one pass (:meth:`RangeImage.to_table`)."""
+    rows, cols = range_m.shape
+    n = 0
+    for i in range(rows):
+        for j in range(cols):
+            if np.isfinite(range_m[i, j]):
+                n += 1
+    v = np.empty(n, np.int32)
+    u = np.empty(n, np.int32)
+    r = np.empty(n, np.float32)
+    x = np.empty(n, np.float32)
+    y = np.empty(n, np.float32)
+    z = np.empty(n, np.float32)
+    k = 0
+    for i in range(rows):
+        for j in range(cols):
+            if np.isfinite(range_m[i, j]):
+                v[k], u[k], r[k] = i, j, range_m[i, j]
+                x[k], y[k], z[k] = points[i, j, 0], points[i, j, 1], points[i, j, 2]
+                k += 1
+    return v, u, r, x, y, z

@@ -51,6 +51,15 @@ def table_azimuth_step(table: pa.Table) -> tuple[float, int, int]:
     return float(np.radians(np.median(np.abs(np.diff(az))))), int(az.size), 1 if az[-1] >= az[0] else -1
 
 
+def table_points(table: pa.Table) -> np.ndarray:
+    """The levelled points (n, 3) float64 of a stored range image, one row per valid pixel in
+    the image's row-major order (its ``x, y, z`` columns)."""
+    xyz = np.empty((table.num_rows, 3))
+    for i, c in enumerate("xyz"):
+        xyz[:, i] = table.column(c).to_numpy()
+    return xyz
+
+
 def spherical_to_xyz(range_m: np.ndarray, azimuth_deg: np.ndarray, elevation_deg: np.ndarray) -> np.ndarray:
     """Sensor-frame points (rows, cols, 3) of an organised range image; NaN where no return."""
     az = np.radians(np.asarray(azimuth_deg, dtype=np.float64))[None, :]
@@ -160,16 +169,20 @@ class RangeImage:
         The image geometry (angles, tilt) lives in the schema metadata so that the organised
         image is restored exactly by :meth:`from_table`.
         """
-        v, u = np.nonzero(self.valid)
         if self._xyz is None and self.points is not None and not any(self.tilt_deg):
-            pts = self.points[v, u]  # already the levelled float32 values
+            from forestmap_assets.core.features._image_kernels import gather_points
+
+            # already the levelled float32 values: one pass (0.1 -> 0.02 s a 2.3 M-point scan)
+            v, u, r, *xyz = gather_points(self.range_m, self.points)
         else:
+            v, u = np.nonzero(self.valid)
             pts = self._xyz[v, u] if self._xyz is not None else self.levelled(v, u)
+            r, xyz = self.range_m[v, u], [pts[:, i].astype(np.float32) for i in range(3)]
         cols = {
-            "row": pa.array(v.astype(np.int32)),
-            "col": pa.array(u.astype(np.int32)),
-            "range_m": pa.array(self.range_m[v, u]),
-            **{c: pa.array(pts[:, i].astype(np.float32)) for i, c in enumerate("xyz")},
+            "row": pa.array(v.astype(np.int32, copy=False)),
+            "col": pa.array(u.astype(np.int32, copy=False)),
+            "range_m": pa.array(r),
+            **{c: pa.array(xyz[i]) for i, c in enumerate("xyz")},
         }
         if self.intensity is not None:
             cols["intensity"] = pa.array(self.intensity[v, u])
