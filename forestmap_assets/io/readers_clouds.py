@@ -213,7 +213,8 @@ _PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 
 def _ply_header(path: Path) -> tuple[str, list[list], int]:
     """PLY header: format, elements ``[name, count, bytes per row (None: has a list
-    property), properties]`` and the header's length in bytes."""
+    property), properties, (name, type) of the scalar properties]`` and the header's length in
+    bytes."""
     with open(path, "rb") as f:
         head = f.read(1 << 20)
     end = re.search(rb"end_header[ \t]*\r?\n", head)
@@ -229,13 +230,14 @@ def _ply_header(path: Path) -> tuple[str, list[list], int]:
         elif tok[0] == "element":
             if len(tok) != 3 or not tok[2].isdigit():
                 raise BadScan(f"damaged PLY header (line {ln.strip()!r})")
-            elements.append([tok[1], int(tok[2]), 0, 0])
+            elements.append([tok[1], int(tok[2]), 0, 0, []])
         elif tok[0] == "property" and elements:
             el = elements[-1]
             if len(tok) == 5 and tok[1] == "list":
                 el[2] = None
             elif len(tok) == 3 and tok[1] in _PLY_SIZES:
                 el[2] = None if el[2] is None else el[2] + _PLY_SIZES[tok[1]]
+                el[4].append((tok[2], tok[1]))
             else:
                 raise BadScan(f"damaged PLY header (line {ln.strip()!r})")
             el[3] += 1
@@ -252,7 +254,7 @@ def _check_ply(path: Path) -> int:
     index = next((i for i, e in enumerate(elements) if e[0] == "vertex"), None)
     if index is None:
         raise BadScan("damaged PLY header (no 'element vertex' line)")
-    _, n, row, props = elements[index]
+    _, n, row, props, _ = elements[index]
     before, after = elements[:index], elements[index + 1 :]
     if fmt == "ascii":
         if index == 0 and row is not None and props:
@@ -266,6 +268,49 @@ def _check_ply(path: Path) -> int:
         if held < n or (held > n and not after):
             raise BadScan(count_damage(n, held))
     return n
+
+
+_PLY_NUMPY = {
+    **dict.fromkeys(("char", "int8"), "i1"), **dict.fromkeys(("uchar", "uint8"), "u1"),
+    **dict.fromkeys(("short", "int16"), "i2"), **dict.fromkeys(("ushort", "uint16"), "u2"),
+    **dict.fromkeys(("int", "int32"), "i4"), **dict.fromkeys(("uint", "uint32"), "u4"),
+    **dict.fromkeys(("float", "float32"), "f4"), **dict.fromkeys(("double", "float64"), "f8"),
+}
+
+
+def _binary_ply_vertices(path: Path) -> np.ndarray | None:
+    """The vertex rows of a binary PLY (a structured array mapped from the file) when the vertex
+    element and those before it have fixed-size rows, else None (Open3D reads it). Open3D's
+    reader took 0.10-0.13 s a 2.3 M-point cloud, this 2 ms, and the columns 0.03 s (issue 16)."""
+    fmt, elements, start = _ply_header(path)
+    index = next((i for i, e in enumerate(elements) if e[0] == "vertex"), None)
+    if fmt == "ascii" or index is None or any(e[2] is None for e in elements[: index + 1]):
+        return None
+    _, n, row, _, props = elements[index]
+    if not {"x", "y", "z"} <= {name for name, _ in props} or len({name for name, _ in props}) < len(props):
+        return None
+    order = "<" if fmt == "binary_little_endian" else ">"
+    dtype = np.dtype([(name, order + _PLY_NUMPY[kind]) for name, kind in props])
+    offset = start + sum(e[1] * e[2] for e in elements[:index])
+    if n == 0 or path.stat().st_size < offset + n * row:
+        return None
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(n,))
+
+
+def _ply_columns(v: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Points (float64), colour (uint8 RGB or None) and intensity (float32 or None) of PLY vertex
+    rows, as Open3D's reader names them (``red, green, blue``; ``intensity``)."""
+    names = set(v.dtype.names)
+    xyz = np.empty((len(v), 3))
+    for i, c in enumerate("xyz"):
+        xyz[:, i] = v[c]
+    rgb = intensity = None
+    if {"red", "green", "blue"} <= names:
+        c = np.column_stack([v[c] for c in ("red", "green", "blue")])
+        rgb = c if c.dtype == np.uint8 else to_rgb8(c)
+    if "intensity" in names:
+        intensity = np.asarray(v["intensity"], dtype=np.float32)
+    return xyz, rgb, intensity
 
 
 def _pcd_header(path: Path) -> tuple[dict[str, list[str]], int]:
@@ -349,6 +394,10 @@ def read_open3d(path: Path, angular_step_deg, to_scanner=None) -> RangeImage:
     if path.suffix.lower() == ".ply":
         check_signature(path, (b"ply\n", b"ply\r\n", b"ply\r"), "a PLY file")
         n = _check_ply(path)
+        if (rows := _binary_ply_vertices(path)) is not None:
+            xyz, rgb, intensity = _ply_columns(rows)
+            del rows  # unmaps the file
+            return _project(xyz, rgb, intensity, angular_step_deg, to_scanner)
     else:
         n = _check_pcd(path)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
