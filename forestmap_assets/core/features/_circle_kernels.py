@@ -210,11 +210,9 @@ if HAVE_NUMBA:
         x, z, h, geometric, sigmas, max_rounds, min_points, gn_iterations, inlier
     ):  # pragma: no cover - compiled
         """Robust fit of one group, mirrors :func:`_fit_groups_numpy`; fills ``inlier``."""
-        n = x.size
         out = np.empty(8)
-        ok = _nb_robust_fit_into(x, z, h, geometric, sigmas, max_rounds, min_points, gn_iterations,
-                                 inlier, np.empty((4, n)), np.empty(n, dtype=np.bool_), np.empty(12), out)
-        return out, ok
+        return out, _nb_robust_fit_into(x, z, h, geometric, sigmas, max_rounds, min_points, gn_iterations, inlier,
+                                        np.empty((4, x.size)), np.empty(x.size, dtype=np.bool_), np.empty(12), out)
 
     @njit(cache=True)
     def _nb_robust_fit_into(
