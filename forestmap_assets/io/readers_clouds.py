@@ -246,12 +246,17 @@ def _ply_header(path: Path) -> tuple[str, list[list], int]:
     return fmt, elements, end.end()
 
 
-def _check_ply(path: Path) -> int:
-    """The header's vertex count, after checking that the file holds that many vertices:
-    binary data by the file size (when the vertex element and those before it have fixed-size
-    rows), ASCII data by its words (when the vertex element comes first)."""
-    fmt, elements, start = _ply_header(path)
-    index = next((i for i, e in enumerate(elements) if e[0] == "vertex"), None)
+def _vertex_index(elements: list[list]) -> int | None:
+    """The position of the ``vertex`` element among a PLY header's elements (None: none)."""
+    return next((i for i, e in enumerate(elements) if e[0] == "vertex"), None)
+
+
+def _check_ply(path: Path, header: tuple[str, list[list], int]) -> int:
+    """The header's (:func:`_ply_header`) vertex count, after checking that the file holds that
+    many vertices: binary data by the file size (when the vertex element and those before it
+    have fixed-size rows), ASCII data by its words (when the vertex element comes first)."""
+    fmt, elements, start = header
+    index = _vertex_index(elements)
     if index is None:
         raise BadScan("damaged PLY header (no 'element vertex' line)")
     _, n, row, props, _ = elements[index]
@@ -278,12 +283,13 @@ _PLY_NUMPY = {
 }
 
 
-def _binary_ply_vertices(path: Path) -> np.ndarray | None:
+def _binary_ply_vertices(path: Path, header: tuple[str, list[list], int] | None = None) -> np.ndarray | None:
     """The vertex rows of a binary PLY (a structured array mapped from the file) when the vertex
-    element and those before it have fixed-size rows, else None (Open3D reads it). Open3D's
-    reader took 0.10-0.13 s a 2.3 M-point cloud, this 2 ms, and the columns 0.03 s (issue 16)."""
-    fmt, elements, start = _ply_header(path)
-    index = next((i for i, e in enumerate(elements) if e[0] == "vertex"), None)
+    element and those before it have fixed-size rows, else None (Open3D reads it); ``header``:
+    the file's :func:`_ply_header`, if already read. Open3D's reader took 0.10-0.13 s a 2.3
+    M-point cloud, this 2 ms, and the columns 0.03 s (issue 16)."""
+    fmt, elements, start = header or _ply_header(path)
+    index = _vertex_index(elements)
     if fmt == "ascii" or index is None or any(e[2] is None for e in elements[: index + 1]):
         return None
     _, n, row, _, props = elements[index]
@@ -393,8 +399,9 @@ def read_open3d(path: Path, angular_step_deg, to_scanner=None) -> RangeImage:
 
     if path.suffix.lower() == ".ply":
         check_signature(path, (b"ply\n", b"ply\r\n", b"ply\r"), "a PLY file")
-        n = _check_ply(path)
-        if (rows := _binary_ply_vertices(path)) is not None:
+        header = _ply_header(path)
+        n = _check_ply(path, header)
+        if (rows := _binary_ply_vertices(path, header)) is not None:
             xyz, rgb, intensity = _ply_columns(rows)
             del rows  # unmaps the file
             return _project(xyz, rgb, intensity, angular_step_deg, to_scanner)
