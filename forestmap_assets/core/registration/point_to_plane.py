@@ -7,6 +7,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from forestmap_assets.core.radius_grid import RadiusGrid
 from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_matrix, project_box
 from forestmap_assets.core.registration.icp_uncertainty import pose_jacobian
 
@@ -21,6 +22,19 @@ def _threads() -> int:
     return max(1, numba.get_num_threads())
 
 
+def nearest(index: cKDTree | RadiusGrid, points: np.ndarray, radius_m: float,
+            rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Distance and row of each point's nearest ``index`` point nearer than ``radius_m`` (``inf``
+    and ``index.n`` where none is); with ``rows``, only for those points (the others: none)."""
+    if isinstance(index, RadiusGrid):
+        return index.query(points, radius_m, rows)
+    if rows is None:
+        return index.query(points, distance_upper_bound=radius_m, workers=_threads())
+    d, idx = np.full(len(points), np.inf), np.full(len(points), index.n)
+    d[rows], idx[rows] = index.query(points[rows], distance_upper_bound=radius_m, workers=_threads())
+    return d, idx
+
+
 class Reach:
     """Which data points can still find a model point, so that an ICP queries only those
     (inferred, issue 16): the distance to a point set is 1-Lipschitz, so a point whose nearest
@@ -30,10 +44,10 @@ class Reach:
     62 % within 10 cm), so each step queries 2.5-6 times fewer points (a refinement 1.04 ->
     0.72 s with the other changes of 747c212)."""
 
-    def __init__(self, tree: cKDTree, base: np.ndarray, bound_m: float):
+    def __init__(self, tree: cKDTree | RadiusGrid, base: np.ndarray, bound_m: float):
         self.base = np.asarray(base, dtype=np.float64)
         self.bound = float(bound_m)
-        self.d0 = tree.query(self.base, distance_upper_bound=self.bound, workers=_threads())[0]
+        self.d0 = nearest(tree, self.base, self.bound)[0]
 
     def candidates(self, moved: np.ndarray, radius_m: float) -> np.ndarray | None:
         """Indices of the points that may pair within ``radius_m`` at ``moved`` (None: any may,
@@ -44,7 +58,7 @@ class Reach:
         return np.flatnonzero(self.d0 <= radius_m + delta + 1e-9)
 
 
-def plane_pairs(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float,
+def plane_pairs(tree: cKDTree | RadiusGrid, normals: np.ndarray, moved: np.ndarray, radius_m: float,
                 moved_normals: np.ndarray | None = None,
                 reach: Reach | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Data points paired with their nearest model point within ``radius_m``: (mask of the
@@ -58,12 +72,7 @@ def plane_pairs(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m:
     the data toward the model's sensor, both ways: a contraction of every baseline by about
     0.1 mm a metre on exact clouds (issue 19, inferred). Pairs whose normals differ by more
     than 60 deg are left out. ``reach``: query only the points that may pair (:class:`Reach`)."""
-    near = None if reach is None else reach.candidates(moved, radius_m)
-    if near is None:
-        d, idx = tree.query(moved, distance_upper_bound=radius_m, workers=_threads())
-    else:
-        d, idx = np.full(len(moved), np.inf), np.full(len(moved), tree.n)
-        d[near], idx[near] = tree.query(moved[near], distance_upper_bound=radius_m, workers=_threads())
+    d, idx = nearest(tree, moved, radius_m, None if reach is None else reach.candidates(moved, radius_m))
     ok = np.isfinite(d)
     ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
     if moved_normals is not None:
@@ -76,7 +85,7 @@ def plane_pairs(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m:
     return ok, idx[ok], nv
 
 
-def plane_residuals(tree: cKDTree, normals: np.ndarray, moved: np.ndarray, radius_m: float,
+def plane_residuals(tree: cKDTree | RadiusGrid, normals: np.ndarray, moved: np.ndarray, radius_m: float,
                     moved_normals: np.ndarray | None = None, reach: Reach | None = None) -> np.ndarray:
     """Signed point-to-plane distances ``n . (m - p)`` of the moved data points to their nearest
     model point within ``radius_m`` (pairs and normals as :func:`plane_pairs`)."""
@@ -92,7 +101,7 @@ def point_to_plane_4dof(
     *,
     max_distance_m: float,
     iterations: int = 5,
-    tree: cKDTree | None = None,
+    tree: cKDTree | RadiusGrid | None = None,
     box=None,
     tol: float = 1e-7,
     robust_k: float | None = None,

@@ -100,7 +100,7 @@ def one_way_fit(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, splats,
     r, t = pose4_to_matrix(pose)
     n = len(data_cloud.data)
     idx = np.arange(n) if n <= max_points else np.sort(np.random.default_rng(0).choice(n, max_points, replace=False))
-    ok, j, nv = plane_pairs(model_cloud.tree, model_cloud.normals, data_cloud.data[idx] @ r.T + t, radius_m,
+    ok, j, nv = plane_pairs(model_cloud.grid, model_cloud.normals, data_cloud.data[idx] @ r.T + t, radius_m,
                             data_cloud.data_normals[idx] @ r.T)
     if not ok.any():
         return np.full(len(splats), np.nan)

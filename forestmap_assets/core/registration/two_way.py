@@ -32,8 +32,8 @@ The pose used is the mean of the two directions. Its sigma is
 ``two_way_sd_scale x sqrt(H^2 + (d / 2)^2 + beam^2)``, floored: ``H`` the larger Gauss-Newton
 Hessian sd of the two directions (inflated for correlated neighbours), ``d`` their disagreement,
 ``beam`` what a wide first-return beam adds (:func:`beam_sd`; zero unless the campaign's sensor
-names its beam). Per-scan clouds (voxel-thinned data with normals, model with normals and k-d
-tree) are prepared once and shared by all pairs of the scan (:class:`RefineCloud`).
+names its beam). Per-scan clouds (voxel-thinned data with normals, model with normals and radius
+grid) are prepared once and shared by all pairs of the scan (:class:`RefineCloud`).
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ from scipy.spatial import cKDTree
 
 from forestmap_assets.core.cloud import pca_normals, voxel_subsample, z_order
 from forestmap_assets.core.geometry import wrap_deg
+from forestmap_assets.core.radius_grid import RadiusGrid
 from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_matrix
 from forestmap_assets.core.registration.icp_uncertainty import icp_covariance, pose_sd
 from forestmap_assets.core.registration.point_to_plane import (
@@ -61,13 +62,16 @@ from forestmap_assets.params.men import RefineSettings
 # how far (m) beyond the coarse radius the start pose's nearest distances are measured: the
 # pruned queries (point_to_plane.Reach) hold while the points move less than this
 REACH_MARGIN_M = 0.05
+# the columns of the model's radius grid: about the largest radius it is queried with (Reach's,
+# the coarse radius 0.1 m plus the margin); any radius gives the same pairs, this one is fastest
+GRID_CELL_M = 0.15
 
 @dataclass
 class RefineCloud:
     """One scan's points for the refinement: ``data`` (voxel ``data_voxel_m``, at most
     ``max_data_points``), ``model`` (voxel ``two_way_model_voxel_m``) with normals (oriented to
-    the sensor) and its k-d ``tree`` (built on first use: the per-scan asset only stores the
-    points)."""
+    the sensor), its radius ``grid`` for the pairs and k-d ``tree`` for the neighbours of
+    normals (each built on first use: the per-scan asset only stores the points)."""
 
     data: np.ndarray
     model: np.ndarray
@@ -76,6 +80,7 @@ class RefineCloud:
     step_rad: float = float("nan")  # the scan's angular step (splat_widening); NaN: not known
     cache: dict = field(default_factory=dict, repr=False, compare=False)  # what a worker keeps for next pairs
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
+    _grid: RadiusGrid | None = field(default=None, repr=False, compare=False)
     _box: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -83,6 +88,14 @@ class RefineCloud:
         if self._tree is None:  # sliding-midpoint, not compacted: built in half the time, queried as fast
             self._tree = cKDTree(self.model, balanced_tree=False, compact_nodes=False)
         return self._tree
+
+    @property
+    def grid(self) -> RadiusGrid:
+        """The model points' :class:`~forestmap_assets.core.radius_grid.RadiusGrid` (the pairs'
+        nearest points, 2-3.5 times faster than :attr:`tree`), built on first use."""
+        if self._grid is None:
+            self._grid = RadiusGrid(self.model, GRID_CELL_M)
+        return self._grid
 
     @property
     def model_box(self) -> tuple[np.ndarray, np.ndarray]:
@@ -219,7 +232,7 @@ def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineS
     dn = data_cloud.with_data_normals(s.normal_k).data_normals[keep] if s.symmetric_pairs else None
     r0, t0 = pose4_to_matrix(pose)
     fine = s.two_way_radii_m[-1]
-    tree, normals = model_cloud.tree, model_cloud.normals
+    tree, normals = model_cloud.grid, model_cloud.normals
     reach = Reach(tree, data @ r0.T + t0, max(s.two_way_radii_m) + REACH_MARGIN_M)
     start_res = plane_residuals(tree, normals, reach.base, fine, None if dn is None else dn @ r0.T, reach)
     if len(start_res) < s.min_pairs:
