@@ -10,6 +10,7 @@ thinned points, whose stems and ground fill few of a column's heights."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from forestmap_assets.core._radius_grid_kernels import build_columns, nearest_within
 
@@ -49,3 +50,17 @@ class RadiusGrid:
         nearest_within(q, sel, float(radius_m), self._points, self._order, self._start, self.lo,
                        self.cell, self.nx, self.ny, d, idx)
         return d, idx
+
+
+def nearest(index: RadiusGrid | cKDTree, points: np.ndarray, radius_m: float, rows: np.ndarray | None = None,
+            workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Distance and row of each point's nearest ``index`` point nearer than ``radius_m`` (``inf``
+    and ``index.n`` where none is), from a grid or a k-d tree (its query on ``workers``
+    threads); with ``rows``, only for those points (the others: none)."""
+    if isinstance(index, RadiusGrid):
+        return index.query(points, radius_m, rows)
+    if rows is None:
+        return index.query(points, distance_upper_bound=radius_m, workers=workers)
+    d, idx = np.full(len(points), np.inf), np.full(len(points), index.n)
+    d[rows], idx[rows] = index.query(points[rows], distance_upper_bound=radius_m, workers=workers)
+    return d, idx

@@ -25,8 +25,8 @@ import hashlib
 from collections import OrderedDict
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from forestmap_assets.core.radius_grid import RadiusGrid
 from forestmap_assets.core.registration.first_hypotheses import (
     _FACE,
     _first_hypotheses,
@@ -43,6 +43,7 @@ from forestmap_assets.core.registration.search_lattice import (
 )
 
 LIVE_CHUNK = 4_000_000  # live entries per evaluation chunk (memory bound, inferred)
+LOCAL_GRID_CELL_M = 0.3  # columns of the reference's radius grid (refine_local's radii 0.15-0.6 m)
 
 
 def _eval_live_chunked(
@@ -149,7 +150,7 @@ def _fast_search(
     pts = np.ascontiguousarray(points, dtype=np.float64)
     n = len(pts)
     d_xy = np.hypot(pts[:, 0], pts[:, 1])
-    tree = cKDTree(reference)
+    tree = RadiusGrid(reference, LOCAL_GRID_CELL_M)  # refine_local's partners, as a k-d tree's
     schedule = lattice.schedule(heading_scale)
     sizes, sz = [], lattice.n.copy()
     for k in schedule:

@@ -7,7 +7,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from forestmap_assets.core.radius_grid import RadiusGrid
+from forestmap_assets.core.radius_grid import RadiusGrid, nearest
 from forestmap_assets.core.registration.hicp import matrix_to_pose4, pose4_to_matrix, project_box
 from forestmap_assets.core.registration.icp_uncertainty import pose_jacobian
 
@@ -22,19 +22,6 @@ def _threads() -> int:
     return max(1, numba.get_num_threads())
 
 
-def nearest(index: cKDTree | RadiusGrid, points: np.ndarray, radius_m: float,
-            rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Distance and row of each point's nearest ``index`` point nearer than ``radius_m`` (``inf``
-    and ``index.n`` where none is); with ``rows``, only for those points (the others: none)."""
-    if isinstance(index, RadiusGrid):
-        return index.query(points, radius_m, rows)
-    if rows is None:
-        return index.query(points, distance_upper_bound=radius_m, workers=_threads())
-    d, idx = np.full(len(points), np.inf), np.full(len(points), index.n)
-    d[rows], idx[rows] = index.query(points[rows], distance_upper_bound=radius_m, workers=_threads())
-    return d, idx
-
-
 class Reach:
     """Which data points can still find a model point, so that an ICP queries only those
     (inferred, issue 16): the distance to a point set is 1-Lipschitz, so a point whose nearest
@@ -47,7 +34,7 @@ class Reach:
     def __init__(self, tree: cKDTree | RadiusGrid, base: np.ndarray, bound_m: float):
         self.base = np.asarray(base, dtype=np.float64)
         self.bound = float(bound_m)
-        self.d0 = nearest(tree, self.base, self.bound)[0]
+        self.d0 = nearest(tree, self.base, self.bound, workers=_threads())[0]
 
     def candidates(self, moved: np.ndarray, radius_m: float) -> np.ndarray | None:
         """Indices of the points that may pair within ``radius_m`` at ``moved`` (None: any may,
@@ -72,7 +59,8 @@ def plane_pairs(tree: cKDTree | RadiusGrid, normals: np.ndarray, moved: np.ndarr
     the data toward the model's sensor, both ways: a contraction of every baseline by about
     0.1 mm a metre on exact clouds (issue 19, inferred). Pairs whose normals differ by more
     than 60 deg are left out. ``reach``: query only the points that may pair (:class:`Reach`)."""
-    d, idx = nearest(tree, moved, radius_m, None if reach is None else reach.candidates(moved, radius_m))
+    rows = None if reach is None else reach.candidates(moved, radius_m)
+    d, idx = nearest(tree, moved, radius_m, rows, workers=_threads())
     ok = np.isfinite(d)
     ok[ok] &= np.isfinite(normals[idx[ok]]).all(axis=1)
     if moved_normals is not None:
