@@ -36,6 +36,17 @@ def _box_dists(a, lo, s):
     return math.sqrt(dmin), math.sqrt(dmax)
 
 
+@nb.njit(cache=True, inline="always")
+def _gap(a, lo, s):
+    """Distance from ``a`` to ``[lo, lo + s]`` on one axis, as :func:`_box_dists` takes it."""
+    hi = lo + s
+    if a < lo:
+        return lo - a
+    if a > hi:
+        return a - hi
+    return 0.0
+
+
 @nb.njit(cache=True)
 def _mark_blocks(ref, origin, s, nb_shape, cap):
     """Block map: -1 for blocks farther than ``cap`` from every point, else a slot number."""
@@ -73,7 +84,9 @@ def _stamp(
     ref, origin, s, shape, nb_shape, bmap, cap, ub, mode, count, idx, fill, margin, p_start, p_end
 ):
     """One pass over the voxels within ``cap`` of each point ``p_start <= p < p_end``: mode 0
-    lowers ``ub``, mode 1 counts candidates, mode 2 writes them."""
+    lowers ``ub``, mode 1 counts candidates, mode 2 writes them. A column of voxels is visited
+    only over the heights its horizontal distance leaves within ``cap`` (and a voxel more each
+    way; the test of each voxel is unchanged): the same voxels, a third of the visits."""
     r = int(math.ceil(cap / s)) + 1
     lo = np.empty(3)
     for p in range(p_start, p_end):
@@ -83,9 +96,17 @@ def _stamp(
         cz = int((a[2] - origin[2]) / s)
         for ix in range(max(cx - r, 0), min(cx + r + 1, shape[0])):
             lo[0] = origin[0] + ix * s
+            gx = _gap(a[0], lo[0], s)
             for iy in range(max(cy - r, 0), min(cy + r + 1, shape[1])):
                 lo[1] = origin[1] + iy * s
-                for iz in range(max(cz - r, 0), min(cz + r + 1, shape[2])):
+                gy = _gap(a[1], lo[1], s)
+                g2 = gx * gx + gy * gy  # as _box_dists sums it: no voxel of the column is nearer
+                if math.sqrt(g2) > cap:
+                    continue
+                h = math.sqrt(max(cap * cap - g2, 0.0))
+                z0 = max(int(math.floor((a[2] - h - origin[2]) / s)) - 1, cz - r, 0)
+                z1 = min(int(math.floor((a[2] + h - origin[2]) / s)) + 1, cz + r, shape[2] - 1)
+                for iz in range(z0, z1 + 1):
                     lo[2] = origin[2] + iz * s
                     dmin, dmax = _box_dists(a, lo, s)
                     if dmin > cap:
