@@ -398,3 +398,22 @@ def test_a_stem_whose_gates_show_no_whole_width_is_gathered_once_about_a_wider_a
     assert fits["caliper_scans"].iat[0] == 0 or fits["caliper_lone_sides"].iat[0]
     out, fits = run(1.5)
     assert abs(out["dbh_m"].iat[0] - 2 * r) < 0.01 and fits["caliper_scans"].iat[0] == 3
+
+
+def test_pixel_ranges_are_the_dense_images():
+    """stem_calipers._pixel_ranges: the range at given pixels of an image stored one row per
+    valid pixel, as a dense image gives it, in row-major order or any other."""
+    from forestmap_assets.core.mapping.stem_calipers import _pixel_ranges
+
+    rng = np.random.default_rng(2)
+    image = np.where(rng.random((40, 90)) < 0.6, rng.uniform(1, 30, (40, 90)), np.inf).astype(np.float32)
+    row, col = np.nonzero(np.isfinite(image))
+    rows = rng.integers(0, 40, 50)
+    cols = rng.integers(0, 90, (50, 64))
+    want = image[rows[:, None], cols]
+    got = _pixel_ranges(row.astype(np.int32), col.astype(np.int32), image[row, col], rows, cols)
+    np.testing.assert_array_equal(got, want)
+    assert np.isinf(got).any() and np.isfinite(got).any()
+    shuffled = rng.permutation(len(row))
+    np.testing.assert_array_equal(_pixel_ranges(row[shuffled], col[shuffled], image[row, col][shuffled], rows, cols),
+                                  want)

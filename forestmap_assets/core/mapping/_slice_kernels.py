@@ -1,7 +1,8 @@
-"""Numba kernel of :meth:`~forestmap_assets.core.mapping.stem_slices.StemCells.near`: a range
-image's points in the stems' marked cells and height bands, in one pass over the image (the
-numpy form made five passes and three gathers, 30 ms a call on a rendered scan of 2.3 M points,
-18 calls in a tree list). The arithmetic is the numpy form's: float64."""
+"""Numba kernels of the tree list's slices and silhouettes: :meth:`~forestmap_assets.core.mapping.
+stem_slices.StemCells.near`, a range image's points in the stems' marked cells and height bands
+in one pass over the image (the numpy form made five passes and three gathers, 30 ms a call on a
+rendered scan of 2.3 M points, 18 calls in a tree list; its arithmetic: float64), and
+:func:`pixel_ranges`, the range at given pixels of an image stored one row per valid pixel."""
 
 from __future__ import annotations
 
@@ -29,3 +30,52 @@ def cells_near(x, y, z, lo_x, lo_y, cell, n_x, n_y, z_lo, z_hi, z_min, z_max):
             out[k] = i
             k += 1
     return out[:k]
+
+
+@nb.njit(cache=True)
+def row_major(row, col):
+    """Whether the pixels are in row-major order (rows ascending, columns ascending in a row), as
+    :meth:`~forestmap_assets.core.features.range_image.RangeImage.to_table` writes them."""
+    for i in range(1, row.shape[0]):
+        if row[i] < row[i - 1] or (row[i] == row[i - 1] and col[i] <= col[i - 1]):
+            return False
+    return True
+
+
+@nb.njit(cache=True)
+def pixel_ranges(row, col, rng, rows, cols):
+    """``out[e, j]``: the range at pixel ``(rows[e], cols[e, j])`` of an image given as its valid
+    pixels in row-major order (``row, col, rng``), ``inf`` where the pixel holds none: a binary
+    search for the row, then for the column within it."""
+    out = np.full(cols.shape, np.inf, np.float32)
+    n = row.shape[0]
+    for e in range(rows.shape[0]):
+        r = rows[e]
+        lo, hi = 0, n
+        while lo < hi:  # the row's first pixel
+            mid = (lo + hi) >> 1
+            if row[mid] < r:
+                lo = mid + 1
+            else:
+                hi = mid
+        start = lo
+        hi = n
+        while lo < hi:  # past its last
+            mid = (lo + hi) >> 1
+            if row[mid] <= r:
+                lo = mid + 1
+            else:
+                hi = mid
+        end = lo
+        for j in range(cols.shape[1]):
+            c = cols[e, j]
+            lo, hi = start, end
+            while lo < hi:
+                mid = (lo + hi) >> 1
+                if col[mid] < c:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            if lo < end and col[lo] == c:
+                out[e, j] = rng[lo]
+    return out
