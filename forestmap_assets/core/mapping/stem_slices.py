@@ -61,6 +61,7 @@ from scipy.spatial import cKDTree
 from forestmap_assets.core.geometry import rot_z, transform_points
 from forestmap_assets.core.mapping.cylinder_radii import MAX_SLOPE, axis_slopes
 from forestmap_assets.core.mapping.slice_splats import splat_back
+from forestmap_assets.core.memo import content_memo
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -205,6 +206,7 @@ def _bin_means(bins: np.ndarray, values: np.ndarray, n_bins: int,
     return np.where(kept > 0, total / np.maximum(kept, 1), np.nan), count
 
 
+@content_memo(4096)  # the anchor passes fit most trees again with the same arguments
 def slice_dbh(xy: np.ndarray, sensor_xy: np.ndarray | None, centre: tuple[float, float],
               radius_m: float, *, max_incidence_deg: float = 65.0, bin_deg: float = 10.0,
               min_points: int = 30, min_coverage_deg: float = 180.0, ellipse_prior: float = 0.05,
