@@ -48,34 +48,11 @@ def pixel_ranges(row, col, rng, rows, cols):
     pixels in row-major order (``row, col, rng``), ``inf`` where the pixel holds none: a binary
     search for the row, then for the column within it."""
     out = np.full(cols.shape, np.inf, np.float32)
-    n = row.shape[0]
     for e in range(rows.shape[0]):
-        r = rows[e]
-        lo, hi = 0, n
-        while lo < hi:  # the row's first pixel
-            mid = (lo + hi) >> 1
-            if row[mid] < r:
-                lo = mid + 1
-            else:
-                hi = mid
-        start = lo
-        hi = n
-        while lo < hi:  # past its last
-            mid = (lo + hi) >> 1
-            if row[mid] <= r:
-                lo = mid + 1
-            else:
-                hi = mid
-        end = lo
+        start = np.searchsorted(row, rows[e])
+        line = col[start:np.searchsorted(row, rows[e], side="right")]
         for j in range(cols.shape[1]):
-            c = cols[e, j]
-            lo, hi = start, end
-            while lo < hi:
-                mid = (lo + hi) >> 1
-                if col[mid] < c:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            if lo < end and col[lo] == c:
-                out[e, j] = rng[lo]
+            k = np.searchsorted(line, cols[e, j])
+            if k < line.shape[0] and line[k] == cols[e, j]:
+                out[e, j] = rng[start + k]
     return out

@@ -16,35 +16,28 @@ BLOCK = 8  # voxels per block edge (fixed: index arithmetic uses shifts by 3)
 _FAST = {"nsz", "arcp", "contract", "reassoc"}  # fast math, but inf stays meaningful
 
 
-@nb.njit(cache=True)
-def _box_dists(a, lo, s):
-    """(min, max) distance from point ``a`` to the voxel box ``[lo, lo + s]``."""
-    dmin = 0.0
-    dmax = 0.0
-    for k in range(3):
-        lo_k = lo[k]
-        hi_k = lo_k + s
-        if a[k] < lo_k:
-            t = lo_k - a[k]
-        elif a[k] > hi_k:
-            t = a[k] - hi_k
-        else:
-            t = 0.0
-        dmin += t * t
-        u = max(abs(a[k] - lo_k), abs(a[k] - hi_k))
-        dmax += u * u
-    return math.sqrt(dmin), math.sqrt(dmax)
-
-
 @nb.njit(cache=True, inline="always")
 def _gap(a, lo, s):
-    """Distance from ``a`` to ``[lo, lo + s]`` on one axis, as :func:`_box_dists` takes it."""
+    """Distance from ``a`` to ``[lo, lo + s]`` on one axis (:func:`_box_dists`, :func:`_stamp`)."""
     hi = lo + s
     if a < lo:
         return lo - a
     if a > hi:
         return a - hi
     return 0.0
+
+
+@nb.njit(cache=True)
+def _box_dists(a, lo, s):
+    """(min, max) distance from point ``a`` to the voxel box ``[lo, lo + s]``."""
+    dmin = 0.0
+    dmax = 0.0
+    for k in range(3):
+        t = _gap(a[k], lo[k], s)
+        dmin += t * t
+        u = max(abs(a[k] - lo[k]), abs(a[k] - (lo[k] + s)))
+        dmax += u * u
+    return math.sqrt(dmin), math.sqrt(dmax)
 
 
 @nb.njit(cache=True)
