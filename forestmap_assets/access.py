@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pyarrow as pa
+import pyarrow.parquet as pq
 from upath import UPath
 
 from forestmap_assets.assets.common import PAIR_STAGES
@@ -22,12 +23,15 @@ def _campaign_key(campaign: str | Path | Campaign) -> str:
     return str(campaign)
 
 
-def load_asset(name: str, *, campaign: str | Path | Campaign, scan: str | None = None, store_url: str | None = None):
+def load_asset(name: str, *, campaign: str | Path | Campaign, scan: str | None = None, store_url: str | None = None,
+               columns: list[str] | None = None):
     """One stored asset output: a DataFrame, a dict of DataFrames (bundles) or a RangeImage.
 
     ``campaign`` is a campaign folder, a :class:`Campaign` or its key; ``scan`` selects the
     partition of a per-scan asset (or a pair, ``<scan>__<reference>``, of a per-pair asset;
-    without it a per-pair asset's pairs come as one bundle). Raises ``FileNotFoundError`` (one line) when the asset has
+    without it a per-pair asset's pairs come as one bundle). ``columns``: only those of these
+    columns that a stored table has, as a DataFrame (a range image's: its valid pixels,
+    row-major, e.g. the levelled ``x, y, z``, float32). Raises ``FileNotFoundError`` (one line) when the asset has
     not been materialised.
     """
     base = UPath(store_url or default_store_url()) / _campaign_key(campaign) / name
@@ -35,6 +39,10 @@ def load_asset(name: str, *, campaign: str | Path | Campaign, scan: str | None =
     table_path = stem.with_name(stem.name + ".parquet")
     bundle_path = stem.with_name(stem.name + ".bundle")
     if table_path.exists():
+        if columns is not None:
+            with table_path.open("rb") as f:
+                stored = set(pq.read_schema(f).names)
+            return read_table(table_path, [c for c in columns if c in stored]).to_pandas()
         table: pa.Table = read_table(table_path)
         if (table.schema.metadata or {}).get(b"forestmap.kind") == b"range_image":
             return RangeImage.from_table(table)

@@ -2,7 +2,9 @@
 :func:`~forestmap_assets.core.cloud.z_order`. The voxel subsample numbers the voxels, then makes
 one pass over the points sorted voxel by voxel, with the arithmetic of the numpy formulation it
 replaced (``floor((p - origin) / voxel_m)``, centroid summed in input order, squared distance over
-``voxel_m^2`` rounded to 9 decimals), so the representatives are the same (finite points)."""
+``voxel_m^2`` rounded to 9 decimals), so the representatives are the same (finite points). The
+subsample's kernels release the GIL, so that the scans of the registered cloud are thinned in
+threads (:mod:`forestmap_assets.core.mapping.point_cloud`)."""
 
 from __future__ import annotations
 
@@ -22,7 +24,34 @@ def lower_corner(p):
     return lo
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
+def placed_points(x, y, z, pose):
+    """Points (n, 3) float64 of the columns ``x, y, z`` placed with ``pose`` (x, y, z,
+    heading_deg; spec 6.1: ``p' = R_z(heading) p + t``), in one pass."""
+    h = math.radians(pose[3])
+    c, s = math.cos(h), math.sin(h)
+    out = np.empty((x.shape[0], 3), np.float64)
+    for i in range(x.shape[0]):
+        a, b = np.float64(x[i]), np.float64(y[i])
+        out[i, 0] = c * a - s * b + pose[0]
+        out[i, 1] = s * a + c * b + pose[1]
+        out[i, 2] = np.float64(z[i]) + pose[2]
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def finite_rows(p):
+    """Indices of the rows of ``p`` (n, 3) whose three values are finite, in one pass."""
+    out = np.empty(p.shape[0], np.int64)
+    n = 0
+    for i in range(p.shape[0]):
+        if np.isfinite(p[i, 0]) and np.isfinite(p[i, 1]) and np.isfinite(p[i, 2]):
+            out[n] = i
+            n += 1
+    return out[:n]
+
+
+@nb.njit(cache=True, nogil=True)
 def voxel_numbers(p, voxel_m, origin):
     """Row-major number of each point's voxel (edge ``voxel_m``, anchored at ``origin``) in the
     box of the occupied voxels."""
@@ -43,7 +72,7 @@ def voxel_numbers(p, voxel_m, origin):
     return flat
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def voxel_representatives(p, order, flat, voxel_m):
     """Input rows of the representative of each voxel: ``order`` lists the rows voxel by voxel
     (stable: each voxel's points in input order), ``flat`` their voxel numbers in that order.

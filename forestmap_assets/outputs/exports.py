@@ -308,7 +308,8 @@ def _json_value(v):
 
 
 def campaign_cloud(campaign: Campaign, poses: pd.DataFrame, spacing_m: float) -> pd.DataFrame:
-    """The registered point cloud of the campaign from the stored range images (see
+    """The registered point cloud of the campaign from the stored range images' levelled points
+    (their float32 ``x, y, z``, with intensity and colour where stored; see
     :func:`~forestmap_assets.core.mapping.point_cloud.registered_cloud`)."""
     from forestmap_assets.core.mapping.point_cloud import registered_cloud
 
@@ -318,18 +319,10 @@ def campaign_cloud(campaign: Campaign, poses: pd.DataFrame, spacing_m: float) ->
         if sid not in placed:
             continue
         try:
-            image = load_asset("range_images", campaign=campaign, scan=sid)
+            scans[sid] = load_asset("range_images", campaign=campaign, scan=sid,
+                                    columns=["x", "y", "z", "intensity", "r", "g", "b"])
         except FileNotFoundError:
             continue
-        v = image.valid
-        xyz = image.xyz[v]
-        table = pd.DataFrame({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]})
-        if image.intensity is not None:
-            table["intensity"] = image.intensity[v]
-        if image.rgb is not None:
-            for i, c in enumerate("rgb"):
-                table[c] = image.rgb[..., i][v]
-        scans[sid] = table
     return registered_cloud(scans, poses, spacing_m, scan_ids=campaign.scan_ids)
 
 

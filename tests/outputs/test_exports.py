@@ -93,6 +93,24 @@ def test_registered_cloud_places_scans_with_their_poses():
     assert len(thin) < len(cloud)
 
 
+def test_registered_cloud_is_the_same_in_threads():
+    """Scans thinned in threads give the cloud of one thread, row for row; points without a
+    finite coordinate are left out; float32 columns are placed like float64 ones."""
+    rng = np.random.default_rng(3)
+    t = pd.DataFrame(rng.uniform(-3, 3, (4000, 3)).astype(np.float32), columns=["x", "y", "z"])
+    s = pd.DataFrame(rng.uniform(-3, 3, (3000, 3)), columns=["x", "y", "z"]).assign(intensity=0.5)
+    t.loc[7, "y"] = np.nan
+    t = t.assign(intensity=rng.uniform(0, 1, len(t)).astype(np.float32))
+    one = registered_cloud({"T": t, "S": s}, POSES, 0.3, scan_ids=["T", "S", "R"], threads=1)
+    two = registered_cloud({"T": t, "S": s}, POSES, 0.3, scan_ids=["T", "S", "R"], threads=2)
+    pd.testing.assert_frame_equal(one, two)
+    assert one[["x", "y", "z"]].notna().all().all()
+    every = registered_cloud({"S": s}, POSES, 0.0, scan_ids=["T", "S", "R"], threads=2)
+    np.testing.assert_allclose(every[["x", "y", "z"]].to_numpy(),
+                               transform_points(s[["x", "y", "z"]].to_numpy(), (4.0, -1.0, 0.3, 90.0)),
+                               rtol=0, atol=1e-12)
+
+
 def test_laz_and_ply_round_trip(tmp_path):
     rng = np.random.default_rng(2)
     n = 500
