@@ -27,3 +27,17 @@ def _numba_target() -> None:
 
 
 _numba_target()
+
+
+def _freeze() -> None:
+    """Move every object imported so far out of the collector's reach (``gc.freeze``, without a
+    collection first: 0.14 s on the start-up's path): a forked worker's collections then no
+    longer write to the fork server's pages, which copied them into every worker (peak memory of
+    a rendered survey's run 2.58-2.82 -> 2.47-2.63 GiB in three alternated pairs of runs, the
+    same time)."""
+    import gc
+
+    gc.freeze()
+
+
+_freeze()
