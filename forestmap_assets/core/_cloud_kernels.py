@@ -27,7 +27,9 @@ def lower_corner(p):
 @nb.njit(cache=True, nogil=True)
 def placed_points(x, y, z, pose):
     """Points (n, 3) float64 of the columns ``x, y, z`` placed with ``pose`` (x, y, z,
-    heading_deg; spec 6.1: ``p' = R_z(heading) p + t``), in one pass."""
+    heading_deg; spec 6.1: ``p' = R_z(heading) p + t``), in one pass: what
+    :func:`~forestmap_assets.core.geometry.transform_points` gives (to the last bit or two)
+    without a float64 copy of the columns first."""
     h = math.radians(pose[3])
     c, s = math.cos(h), math.sin(h)
     out = np.empty((x.shape[0], 3), np.float64)

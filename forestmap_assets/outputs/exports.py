@@ -311,7 +311,7 @@ def campaign_cloud(campaign: Campaign, poses: pd.DataFrame, spacing_m: float) ->
     """The registered point cloud of the campaign from the stored range images' levelled points
     (their float32 ``x, y, z``, with intensity and colour where stored; see
     :func:`~forestmap_assets.core.mapping.point_cloud.registered_cloud`)."""
-    from forestmap_assets.core.mapping.point_cloud import registered_cloud
+    from forestmap_assets.core.mapping.point_cloud import EXTRA_COLUMNS, registered_cloud
 
     placed = set(poses.loc[poses["registered"].astype(bool), "scan"])
     scans = {}
@@ -320,7 +320,7 @@ def campaign_cloud(campaign: Campaign, poses: pd.DataFrame, spacing_m: float) ->
             continue
         try:
             scans[sid] = load_asset("range_images", campaign=campaign, scan=sid,
-                                    columns=["x", "y", "z", "intensity", "r", "g", "b"])
+                                    columns=["x", "y", "z", *EXTRA_COLUMNS])
         except FileNotFoundError:
             continue
     return registered_cloud(scans, poses, spacing_m, scan_ids=campaign.scan_ids)

@@ -19,6 +19,7 @@ import pandas as pd
 from forestmap_assets.core._cloud_kernels import placed_points
 
 CLOUD_COLUMNS = ["x", "y", "z", "scan"]
+EXTRA_COLUMNS = ("intensity", "r", "g", "b")  # kept where every scan has them
 MAX_THREADS = 4  # scans thinned at once by default (about 0.15 GB of temporaries each, 2.4 M points)
 
 
@@ -64,7 +65,7 @@ def registered_cloud(
     todo = [(sid, t) for sid, t in scans.items() if sid in placed.index and t is not None and len(t)]
     extras = None
     for _, table in todo:
-        cols = [c for c in ("intensity", "r", "g", "b") if c in table]
+        cols = [c for c in EXTRA_COLUMNS if c in table]
         extras = cols if extras is None else [c for c in extras if c in cols]
 
     def thin(item: tuple[str, pd.DataFrame]) -> pd.DataFrame:
