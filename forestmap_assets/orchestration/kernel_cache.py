@@ -5,9 +5,11 @@ first call, 5-15 ms a signature. A worker's first scan paid that for every kerne
 stages (about 0.25 s in the range image's projection alone), so it took 0.5-1.5 s longer than the
 next. :func:`load_cached_kernels` loads, for every kernel module (``_*_kernels.py``), the
 signatures that the cache holds for the current code and machine, and nothing else: it never
-compiles. Each worker calls it as it starts (:func:`~.session._init_worker`), after its numba
-threads have started (a parallel kernel starts them when it is loaded, which a fork server
-must not do); as a first task it could go twice to one worker and never to the other.
+compiles. The fork server loads the serial kernels once for all its workers
+(:mod:`.worker_libraries`); each worker loads the parallel ones as it starts
+(:func:`~.session._init_worker`), after its numba threads have started (a parallel kernel starts
+them when it is loaded, which a fork server must not do); as a first task it could go twice to
+one worker and never to the other.
 
 It reads numba's cache index through numba internals (0.6x): where they differ, nothing is
 loaded and the first call of each kernel loads it, as before."""
@@ -27,9 +29,11 @@ def kernel_modules() -> list[str]:
                   for p in root.rglob("_*_kernels.py"))
 
 
-def load_cached_kernels() -> int:
+def load_cached_kernels(serial_only: bool = False) -> int:
     """Load every cached signature of the kernel modules' module-level kernels; returns how many
-    were loaded (0 where numba's internals differ)."""
+    were loaded (0 where numba's internals differ). ``serial_only``: not the ``parallel=True``
+    kernels, whose loading starts numba's threads (a fork server loads the others once for all
+    its workers)."""
     try:
         from numba.core.dispatcher import Dispatcher
         from numba.core.registry import cpu_target
@@ -41,9 +45,11 @@ def load_cached_kernels() -> int:
                 cache = getattr(kernel, "_cache", None) if isinstance(kernel, Dispatcher) else None
                 if getattr(cache, "_cache_file", None) is None:
                     continue
+                if serial_only and kernel.targetoptions.get("parallel"):
+                    continue
                 current = cache._index_key(None, codegen)[1:]  # machine and source hash
                 for key in cache._cache_file._load_index():
-                    if key[1:] == current:  # a hit: compile() loads it from the cache
+                    if key[1:] == current and key[0] not in kernel.overloads:  # a hit, not yet loaded
                         kernel.compile(key[0])
                         loaded += 1
         return loaded

@@ -1,7 +1,8 @@
 """What every worker process needs, imported once in the fork server that forks them
 (:mod:`.forkserver`): the session (Dagster and the asset modules), Open3D and SciPy's k-d trees
-(the per-scan stages), Dagster's SQLite storage (the worker's instance) and numba's CPU target
-(initialised once, about 0.4 s, instead of at each worker's first compiled kernel). Nothing here
+(the per-scan stages), Dagster's SQLite storage (the worker's instance), numba's CPU target
+(initialised once, about 0.4 s, instead of at each worker's first compiled kernel) and the cached
+kernels but the parallel ones (about 0.4 s, once rather than in every worker). Nothing here
 starts a thread, so the fork server may fork after it."""
 
 from __future__ import annotations
@@ -27,6 +28,18 @@ def _numba_target() -> None:
 
 
 _numba_target()
+
+
+def _serial_kernels() -> None:
+    """The compiled kernels numba has cached, but the parallel ones (their loading starts
+    numba's threads, which a fork server must not have): loaded once here rather than in every
+    worker at its start (:mod:`.kernel_cache`)."""
+    from forestmap_assets.orchestration.kernel_cache import load_cached_kernels
+
+    load_cached_kernels(serial_only=True)
+
+
+_serial_kernels()
 
 
 def _freeze() -> None:
