@@ -338,3 +338,32 @@ def test_lattice_search_grows_the_cloud_and_keeps_the_maximum():
             d[:, 3] = np.minimum(d[:, 3], 360 - d[:, 3])
             assert d.sum(1).min() < 1e-6
         assert r.cloud_cells >= len(want)
+
+
+def test_candidate_lists_are_sorted_by_their_distance_from_the_voxel():
+    """Each voxel's candidates come in ascending order of their distance from the voxel's box,
+    and that stored distance never exceeds the distance to any position inside the voxel (the
+    nearest-distance loops stop on it); the scores stay the k-d tree's for any voxel size."""
+    rng = np.random.default_rng(6)
+    ref = rng.uniform(-2, 2, (300, 3))
+    model = ScoreModel()
+    kd = KdEvaluator(ref, model)
+    scan = rng.uniform(-2.3, 2.3, (2000, 3))
+    s_kd, _ = kd(np.zeros((1, 4)), scan, np.zeros(len(scan)), bound=False)
+    for fine in (0.1, 0.2, 0.35):
+        field = ReferenceField(ref, model, fine_m=fine)
+        off, idx, lb = field.cand_off, field.cand_idx[:, 0], field.cand_lb[:, 1]
+        n_vox = np.diff(off)
+        same = np.repeat(np.arange(len(n_vox)), n_vox)
+        assert np.all((np.diff(lb) >= 0) | (same[1:] != same[:-1]))
+        # positions inside the voxels of the scan's points: never nearer than the stored distance
+        v_of = np.floor((scan - field.f_origin) / field.f_s).astype(int)
+        for q, (ix, iy, iz) in zip(scan[:300], v_of[:300], strict=True):
+            b = field.bmap[((ix >> 3) * field.nb_shape[1] + (iy >> 3)) * field.nb_shape[2] + (iz >> 3)]
+            if b < 0:
+                continue
+            v = b * 512 + (((ix & 7) << 6) | ((iy & 7) << 3) | (iz & 7))
+            dist = np.linalg.norm(ref[idx[off[v]:off[v + 1]]] - q, axis=1)
+            assert np.all(lb[off[v]:off[v + 1]] <= dist)
+        s_fast, _ = field.evaluate(np.zeros((1, 4)), scan, bound=False)
+        np.testing.assert_allclose(s_fast, s_kd, rtol=1e-12)

@@ -14,7 +14,9 @@ from forestmap_assets.core.registration._field_index_kernels import _FAST, _slot
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FAST)
-def _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cap):
+def _nearest(
+    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
+):
     """Exact nearest distance if ``<= cap``, else ``inf`` (module docstring)."""
     ix = int(math.floor((qx - f_origin[0]) / f_s))
     iy = int(math.floor((qy - f_origin[1]) / f_s))
@@ -26,7 +28,10 @@ def _nearest(qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, 
         return np.inf
     best = np.inf
     for c in range(cand_off[v], cand_off[v + 1]):
-        j = cand_idx[c]
+        lb = np.float64(cand_lb[c, 1])
+        if lb * lb >= best:  # the rest are as far from the whole voxel
+            break
+        j = cand_idx[c, 0]
         dx = qx - ref[j, 0]
         dy = qy - ref[j, 1]
         dz = qz - ref[j, 2]
@@ -57,6 +62,7 @@ def _nearest_abox(
     bmap,
     cand_off,
     cand_idx,
+    cand_lb,
     ub,
     cap,
 ):
@@ -71,26 +77,44 @@ def _nearest_abox(
     if v < 0:
         return np.inf, np.inf
     best = np.inf
-    boxb = np.inf
-    for c in range(cand_off[v], cand_off[v + 1]):
-        j = cand_idx[c]
+    start, end = cand_off[v], cand_off[v + 1]
+    for c in range(start, end):
+        lb = np.float64(cand_lb[c, 1])
+        if lb * lb >= best:  # the rest are as far from the whole voxel
+            break
+        j = cand_idx[c, 0]
         dx = ref[j, 0] - qx
         dy = ref[j, 1] - qy
         dz = ref[j, 2] - qz
         d2 = dx * dx + dy * dy + dz * dz
         if d2 < best:
             best = d2
-        gx = max(dx - hx, lx - dx, 0.0)
-        gy = max(dy - hy, ly - dy, 0.0)
-        gz = max(dz - hz, lz - dz, 0.0)
-        g2 = gx * gx + gy * gy + gz * gz
-        if g2 < boxb:
-            boxb = g2
     d = math.sqrt(best)
     if d > cap:
         return np.inf, np.inf
     low = d - lip
     if d + 2.0 * lip <= ub[v]:
+        # the box's reach beyond the voxel: a candidate lb from the voxel is at least lb - reach
+        # from every position of the box
+        rx = max(-lx, hx)
+        ry = max(-ly, hy)
+        rz = max(-lz, hz)
+        reach = math.sqrt(rx * rx + ry * ry + rz * rz)
+        boxb = np.inf
+        for c in range(start, end):
+            lb = np.float64(cand_lb[c, 1]) - reach
+            if lb > 0.0 and lb * lb >= boxb:
+                break
+            j = cand_idx[c, 0]
+            dx = ref[j, 0] - qx
+            dy = ref[j, 1] - qy
+            dz = ref[j, 2] - qz
+            gx = max(dx - hx, lx - dx, 0.0)
+            gy = max(dy - hy, ly - dy, 0.0)
+            gz = max(dz - hz, lz - dz, 0.0)
+            g2 = gx * gx + gy * gy + gz * gz
+            if g2 < boxb:
+                boxb = g2
         low = max(low, math.sqrt(boxb))
     return d, low
 
@@ -112,6 +136,7 @@ def _nearest_box(
     bmap,
     cand_off,
     cand_idx,
+    cand_lb,
     ub,
     cap,
 ):
@@ -141,6 +166,7 @@ def _nearest_box(
         bmap,
         cand_off,
         cand_idx,
+        cand_lb,
         ub,
         cap,
     )

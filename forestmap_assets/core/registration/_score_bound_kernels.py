@@ -39,6 +39,7 @@ def _eval_cells(
     bmap,
     cand_off,
     cand_idx,
+    cand_lb,
     b_off,
     b_idx,
     cap,
@@ -73,7 +74,7 @@ def _eval_cells(
             qy = sh * pts[i, 0] + ch * pts[i, 1] + ty
             qz = pts[i, 2] + tz
             d = _nearest(
-                qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cap
+                qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
             )
             if do_score:
                 if d <= cap:
@@ -140,6 +141,7 @@ def _eval_live(
     bmap,
     cand_off,
     cand_idx,
+    cand_lb,
     ub,
     cap,
     c_origin,
@@ -196,12 +198,13 @@ def _eval_live(
                     bmap,
                     cand_off,
                     cand_idx,
+                    cand_lb,
                     ub,
                     cap,
                 )
             else:
                 d = _nearest(
-                    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cap
+                    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
                 )
                 r = d - delta
             if d > cap:
@@ -252,6 +255,7 @@ def _eval_live_box(
     bmap,
     cand_off,
     cand_idx,
+    cand_lb,
     ub,
     cap,
     c_origin,
@@ -333,12 +337,13 @@ def _eval_live_box(
                     bmap,
                     cand_off,
                     cand_idx,
+                    cand_lb,
                     ub,
                     cap,
                 )
             else:
                 d = _nearest(
-                    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cap
+                    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
                 )
                 r = d - delta
             if d > cap:
@@ -385,6 +390,7 @@ def _exact_live(
     bmap,
     cand_off,
     cand_idx,
+    cand_lb,
     cap,
     k1,
     ln_k1,
@@ -404,7 +410,7 @@ def _exact_live(
             qy = sh * pts[i, 0] + ch * pts[i, 1] + ty
             qz = pts[i, 2] + tz
             d = _nearest(
-                qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cap
+                qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
             )
             if d <= cap:
                 acc += math.log(k1 + k2n * math.exp(-d * d * inv2s2))
