@@ -352,14 +352,15 @@ def test_candidate_lists_are_sorted_by_their_distance_from_the_voxel():
     s_kd, _ = kd(np.zeros((1, 4)), scan, np.zeros(len(scan)), bound=False)
     for fine in (0.1, 0.2, 0.35):
         field = ReferenceField(ref, model, fine_m=fine)
-        off, idx, lb = field.cand_off, field.cand_idx[:, 0], field.cand_lb[:, 1]
+        off, idx, lb = field.cand_off, field.cand_idx, field.cand_lb
         n_vox = np.diff(off)
         same = np.repeat(np.arange(len(n_vox)), n_vox)
         assert np.all((np.diff(lb) >= 0) | (same[1:] != same[:-1]))
         # positions inside the voxels of the scan's points: never nearer than the stored distance
         v_of = np.floor((scan - field.f_origin) / field.f_s).astype(int)
         for q, (ix, iy, iz) in zip(scan[:300], v_of[:300], strict=True):
-            b = field.bmap[((ix >> 3) * field.nb_shape[1] + (iy >> 3)) * field.nb_shape[2] + (iz >> 3)]
+            nb1, nb2 = field.nb_shape[1], field.nb_shape[2]
+            b = field.bmap[((ix >> 3) * nb1 + (iy >> 3)) * nb2 + (iz >> 3)]
             if b < 0:
                 continue
             v = b * 512 + (((ix & 7) << 6) | ((iy & 7) << 3) | (iz & 7))

@@ -28,10 +28,10 @@ def _nearest(
         return np.inf
     best = np.inf
     for c in range(cand_off[v], cand_off[v + 1]):
-        lb = np.float64(cand_lb[c, 1])
+        lb = np.float64(cand_lb[c])
         if lb * lb >= best:  # the rest are as far from the whole voxel
             break
-        j = cand_idx[c, 0]
+        j = cand_idx[c]
         dx = qx - ref[j, 0]
         dy = qy - ref[j, 1]
         dz = qz - ref[j, 2]
@@ -79,10 +79,10 @@ def _nearest_abox(
     best = np.inf
     start, end = cand_off[v], cand_off[v + 1]
     for c in range(start, end):
-        lb = np.float64(cand_lb[c, 1])
+        lb = np.float64(cand_lb[c])
         if lb * lb >= best:  # the rest are as far from the whole voxel
             break
-        j = cand_idx[c, 0]
+        j = cand_idx[c]
         dx = ref[j, 0] - qx
         dy = ref[j, 1] - qy
         dz = ref[j, 2] - qz
@@ -102,10 +102,10 @@ def _nearest_abox(
         reach = math.sqrt(rx * rx + ry * ry + rz * rz)
         boxb = np.inf
         for c in range(start, end):
-            lb = np.float64(cand_lb[c, 1]) - reach
+            lb = np.float64(cand_lb[c]) - reach
             if lb > 0.0 and lb * lb >= boxb:
                 break
-            j = cand_idx[c, 0]
+            j = cand_idx[c]
             dx = ref[j, 0] - qx
             dy = ref[j, 1] - qy
             dz = ref[j, 2] - qz

@@ -74,12 +74,15 @@ def _slot(ix, iy, iz, bmap, nb_shape):
 
 @nb.njit(cache=True)
 def _stamp(
-    ref, origin, s, shape, nb_shape, bmap, cap, ub, mode, count, idx, fill, margin, p_start, p_end
+    ref, origin, s, shape, nb_shape, bmap, cap, ub, mode, count, idx, lbs, fill, margin, p_start,
+    p_end,
 ):
     """One pass over the voxels within ``cap`` of each point ``p_start <= p < p_end``: mode 0
-    lowers ``ub``, mode 1 counts candidates, mode 2 writes them. A column of voxels is visited
-    only over the heights its horizontal distance leaves within ``cap`` (and a voxel more each
-    way; the test of each voxel is unchanged): the same voxels, a third of the visits."""
+    lowers ``ub``, mode 1 counts candidates, mode 2 writes them (``idx``) with their distance
+    from the voxel (``lbs``, float32, a micrometre less, so that rounding never raises it). A
+    column of voxels is visited only over the heights its horizontal distance leaves within
+    ``cap`` (and a voxel more each way; the test of each voxel is unchanged): the same voxels, a
+    third of the visits."""
     r = int(math.ceil(cap / s)) + 1
     lo = np.empty(3)
     for p in range(p_start, p_end):
@@ -113,6 +116,7 @@ def _stamp(
                             count[v + 1] += 1
                         else:
                             idx[fill[v]] = p
+                            lbs[fill[v]] = max(dmin - 1e-6, 0.0)
                             fill[v] += 1
 
 
@@ -128,6 +132,7 @@ def _build_candidates(ref, origin, s, shape, nb_shape, bmap, n_blocks, cap, marg
     ubs = np.full((n_parts, nvox), np.inf)
     counts = np.zeros((n_parts, nvox + 1), np.int64)
     idx = np.empty(0, np.int32)
+    lbs = np.empty(0, np.float32)
     fill = np.empty(0, np.int64)
     for t in nb.prange(n_parts):
         _stamp(
@@ -142,6 +147,7 @@ def _build_candidates(ref, origin, s, shape, nb_shape, bmap, n_blocks, cap, marg
             0,
             counts[t],
             idx,
+            lbs,
             fill,
             margin,
             cut[t],
@@ -166,6 +172,7 @@ def _build_candidates(ref, origin, s, shape, nb_shape, bmap, n_blocks, cap, marg
             1,
             counts[t],
             idx,
+            lbs,
             fill,
             margin,
             cut[t],
@@ -185,6 +192,7 @@ def _build_candidates(ref, origin, s, shape, nb_shape, bmap, n_blocks, cap, marg
             fills[t, v] = f
             f += counts[t, v + 1]
     idx = np.empty(count[nvox], np.int32)
+    lbs = np.empty(count[nvox], np.float32)
     for t in nb.prange(n_parts):
         _stamp(
             ref,
@@ -198,52 +206,32 @@ def _build_candidates(ref, origin, s, shape, nb_shape, bmap, n_blocks, cap, marg
             2,
             counts[t],
             idx,
+            lbs,
             fills[t],
             margin,
             cut[t],
             cut[t + 1],
         )
-    lbs = _order_candidates(ref, origin, s, nb_shape, bmap, n_blocks, count, idx)
+    _sort_candidates(count, idx, lbs)
     return count, idx, lbs, np.minimum(ub + margin, cap).astype(np.float32)
 
 
 @nb.njit(cache=True, parallel=True)
-def _order_candidates(ref, origin, s, nb_shape, bmap, n_blocks, count, idx):
-    """Each voxel's candidates sorted by their distance from the voxel's box, and those
-    distances (float32, a micrometre less, so that rounding never raises them): no candidate
-    after one as far as the nearest found so far can be nearer to any point of the voxel, so
-    the nearest-distance loops stop there (:mod:`._distance_kernels`)."""
-    block_of = np.empty(n_blocks, np.int64)
-    for b in range(bmap.shape[0]):
-        if bmap[b] >= 0:
-            block_of[bmap[b]] = b
-    lbs = np.empty(idx.shape[0], np.float32)
-    for v in nb.prange(n_blocks * 512):
-        start, end = count[v], count[v + 1]
-        if end - start == 0:
-            continue
-        b = block_of[v // 512]
-        local = v % 512
-        ijk = (
-            (b // (nb_shape[1] * nb_shape[2])) * BLOCK + (local >> 6),
-            ((b // nb_shape[2]) % nb_shape[1]) * BLOCK + ((local >> 3) & 7),
-            (b % nb_shape[2]) * BLOCK + (local & 7),
-        )
-        corner = np.empty(3)
-        for k in range(3):
-            corner[k] = origin[k] + ijk[k] * s
-        for c in range(start, end):
-            lbs[c] = max(_box_dists(ref[idx[c]], corner, s)[0] - 1e-6, 0.0)
-        for c in range(start + 1, end):  # insertion sort: the lists are short
+def _sort_candidates(count, idx, lbs):
+    """Each voxel's candidates in ascending order of their distance from the voxel (``lbs``):
+    no candidate after one as far as the nearest found so far can be nearer to any point of the
+    voxel, so the nearest-distance loops stop there (:mod:`._distance_kernels`). An insertion
+    sort: the lists are short."""
+    for v in nb.prange(count.shape[0] - 1):
+        for c in range(count[v] + 1, count[v + 1]):
             key, j = lbs[c], idx[c]
             m = c - 1
-            while m >= start and lbs[m] > key:
+            while m >= count[v] and lbs[m] > key:
                 lbs[m + 1] = lbs[m]
                 idx[m + 1] = idx[m]
                 m -= 1
             lbs[m + 1] = key
             idx[m + 1] = j
-    return lbs
 
 
 @nb.njit(cache=True)

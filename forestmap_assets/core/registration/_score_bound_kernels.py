@@ -74,7 +74,8 @@ def _eval_cells(
             qy = sh * pts[i, 0] + ch * pts[i, 1] + ty
             qz = pts[i, 2] + tz
             d = _nearest(
-                qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
+                qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx,
+                cand_lb, cap,
             )
             if do_score:
                 if d <= cap:
@@ -204,7 +205,8 @@ def _eval_live(
                 )
             else:
                 d = _nearest(
-                    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
+                    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx,
+                    cand_lb, cap,
                 )
                 r = d - delta
             if d > cap:
@@ -343,7 +345,8 @@ def _eval_live_box(
                 )
             else:
                 d = _nearest(
-                    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
+                    qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx,
+                    cand_lb, cap,
                 )
                 r = d - delta
             if d > cap:
@@ -410,7 +413,8 @@ def _exact_live(
             qy = sh * pts[i, 0] + ch * pts[i, 1] + ty
             qz = pts[i, 2] + tz
             d = _nearest(
-                qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx, cand_lb, cap
+                qx, qy, qz, ref, f_origin, f_s, f_shape, nb_shape, bmap, cand_off, cand_idx,
+                cand_lb, cap,
             )
             if d <= cap:
                 acc += math.log(k1 + k2n * math.exp(-d * d * inv2s2))

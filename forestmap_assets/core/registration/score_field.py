@@ -7,7 +7,7 @@ stored) whose voxels list candidate points ``C_v = {a : dist(a, box_v) <= min(ub
 of a query ``q`` in ``box_v`` whenever it is ``<= cap`` (otherwise ``ln p(D) == ln k1``): scores
 are exact, not interpolated (:mod:`._field_index_kernels`); and a coarse grid (``coarse_m``) of
 rigorous lower bounds ``min_a dist(a, box_v)`` used by bounds beyond ``cap``. Each list is
-sorted by ``dist(a, box_v)``, stored beside the point's index, and the nearest-distance loops stop
+sorted by ``dist(a, box_v)`` (kept in ``cand_lb``), and the nearest-distance loops stop
 at the first candidate as far as the nearest found (the same minimum). The lookups, not the
 arithmetic, bound the speed: 0.2 m voxels (a third of the 0.1 m index's memory, 33 MB for a
 12,000-point sub-map of 120 stems) made the branch and bound 13-22 % faster than 0.1 m on
@@ -83,7 +83,7 @@ class ReferenceField:
         self.bmap, self.n_blocks = _mark_blocks(
             ref, self.f_origin, self.f_s, self.nb_shape, self.cap
         )
-        self.cand_off, idx, lbs, self.ub = _build_candidates(
+        self.cand_off, self.cand_idx, self.cand_lb, self.ub = _build_candidates(
             ref,
             self.f_origin,
             self.f_s,
@@ -95,11 +95,6 @@ class ReferenceField:
             float(list_margin_m),
             max(1, min(nb.get_num_threads(), len(ref) // 500)),
         )
-        # each candidate's point and its distance from the voxel side by side (one cache line)
-        self.cand_idx = np.empty((len(idx), 2), np.int32)
-        self.cand_idx[:, 0] = idx
-        self.cand_idx[:, 1] = lbs.view(np.int32)
-        self.cand_lb = self.cand_idx.view(np.float32)
         self.b_off, self.b_idx = _build_buckets(
             ref, self.f_origin, self.f_s, self.nb_shape, self.bmap, self.n_blocks
         )
