@@ -37,6 +37,12 @@ class RadiusGrid:
         self.nx, self.ny = (int(v) + 1 for v in np.floor(span / cell))
         self._start, self._order, self._points = build_columns(self.data, self.lo, cell, self.nx, self.ny)
 
+    @property
+    def columns(self) -> tuple:
+        """What the grid's kernels read: the sorted points, their input rows, the column
+        offsets, the grid's corner, cell and size (``nx``, ``ny``)."""
+        return self._points, self._order, self._start, self.lo, self.cell, self.nx, self.ny
+
     def query(self, points: np.ndarray, radius_m: float, rows: np.ndarray | None = None):
         """Distance to the nearest point nearer than ``radius_m`` and its row (``inf`` and
         :attr:`n` where there is none) for each of ``points``; with ``rows``, only for those

@@ -91,3 +91,38 @@ def test_the_pairs_are_the_same_from_the_grid_and_the_tree():
             for x, y in zip(a, b, strict=True):
                 np.testing.assert_array_equal(x, y)
             assert a[0].sum() > 100
+
+
+@pytest.mark.parametrize("symmetric", [False, True])
+@pytest.mark.parametrize("pruned", [False, True])
+def test_the_fused_gauss_newton_step_follows_the_numpy_one(symmetric, pruned):
+    """point_to_plane_4dof on a grid (one kernel a step, _plane_step_kernels.plane_step) walks
+    the poses of its numpy step on a k-d tree: the same partners and iterations, the pose to
+    rounding; some model normals missing, some data normals facing away."""
+    from forestmap_assets.core.cloud import pca_normals
+    from forestmap_assets.core.registration.hicp import pose4_to_matrix
+    from forestmap_assets.core.registration.point_to_plane import point_to_plane_4dof
+
+    rng = np.random.default_rng(5)
+    model = _forest(rng, 25, 300)
+    normals = pca_normals(model, 12)[0]
+    normals[rng.random(len(model)) < 0.05] = np.nan
+    truth = np.array([0.03, -0.02, 0.01, 0.4])
+    r, t = pose4_to_matrix(truth)
+    data = (model[::2] - t) @ r + rng.normal(0, 0.005, (len(model[::2]), 3))  # model = R data + t
+    dn = normals[::2] @ r
+    dn[rng.random(len(dn)) < 0.05] *= -1.0
+    start = np.zeros(4)
+    tree, grid = cKDTree(model), RadiusGrid(model, 0.15)
+    runs = []
+    for index in (tree, grid):
+        reach = Reach(index, data, 0.2) if pruned else None
+        box = (start, np.array([0.05, 0.05, 0.05, 2.0]))
+        runs.append(point_to_plane_4dof(model, normals, data, start, max_distance_m=0.1, iterations=8, tree=index,
+                                        box=box, tol=1e-9, data_normals=dn if symmetric else None, reach=reach))
+    (p0, partner0, it0), (p1, partner1, it1) = runs
+    assert it1 == it0 and it0 > 2
+    np.testing.assert_array_equal(partner1, partner0)
+    np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(p1, truth, atol=2e-3)
+    assert (partner1 >= 0).sum() > 1000

@@ -108,9 +108,20 @@ def point_to_plane_4dof(
     tree = tree or cKDTree(model)
     pose = np.asarray(init_pose, dtype=np.float64).copy()
     partner = np.full(len(data), -1)
+    fused = robust_k is None and isinstance(tree, RadiusGrid)  # least squares: one kernel a step
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007
         r, t = pose4_to_matrix(pose)
+        if fused:
+            a, b, n_pairs = _normal_equations(tree, model, normals, data, r, t, max_distance_m, data_normals,
+                                              reach, partner)
+            if n_pairs < 4:
+                break
+            delta = np.linalg.lstsq(a, b, rcond=None)[0]
+            pose, done = _stepped(pose, t, delta, box, tol)
+            if done:
+                break
+            continue
         moved = data @ r.T + t
         moved_n = None if data_normals is None else data_normals @ r.T
         ok, idx, nv = plane_pairs(tree, normals, moved, max_distance_m, moved_n, reach)
@@ -127,14 +138,37 @@ def point_to_plane_4dof(
             delta = np.linalg.lstsq(jw.T @ jn, jw.T @ res, rcond=None)[0]
         else:
             delta = np.linalg.lstsq(jn.T @ jn, jn.T @ res, rcond=None)[0]
-        # p(delta) = R_z(h + dh) d + t + dt: the increments add to the pose (see pose_jacobian)
-        pose = np.array([*(t + delta[:3]), pose[3] + np.degrees(delta[3])])
-        if box is not None:
-            r2, t2, _ = project_box(*pose4_to_matrix(pose), box)
-            pose = matrix_to_pose4(r2, t2)
-        if np.abs(delta[:3]).max() < tol and abs(delta[3]) < tol:
+        pose, done = _stepped(pose, t, delta, box, tol)
+        if done:
             break
     return pose, partner, it
+
+
+def _stepped(pose: np.ndarray, t: np.ndarray, delta: np.ndarray, box, tol: float) -> tuple[np.ndarray, bool]:
+    """The pose after a Gauss-Newton step ``delta`` (clamped into ``box``), and whether the step
+    was below ``tol``. ``p(delta) = R_z(h + dh) d + t + dt``: the increments add to the pose
+    (see ``pose_jacobian``)."""
+    pose = np.array([*(t + delta[:3]), pose[3] + np.degrees(delta[3])])
+    if box is not None:
+        r2, t2, _ = project_box(*pose4_to_matrix(pose), box)
+        pose = matrix_to_pose4(r2, t2)
+    return pose, bool(np.abs(delta[:3]).max() < tol and abs(delta[3]) < tol)
+
+
+def _normal_equations(grid: RadiusGrid, model: np.ndarray, normals: np.ndarray, data: np.ndarray, r: np.ndarray,
+                      t: np.ndarray, radius_m: float, data_normals: np.ndarray | None, reach: Reach | None,
+                      partner: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The least-squares step's normal equations ``(J^T J, J^T r, pairs)`` of :func:`plane_pairs`'
+    pairs at ``r, t`` in one kernel (:func:`~._plane_step_kernels.plane_step`, issue 16); fills
+    ``partner``."""
+    from forestmap_assets.core.registration._plane_step_kernels import plane_step
+
+    none = np.zeros((0, 3))
+    dn = none if data_normals is None else np.ascontiguousarray(data_normals, dtype=np.float64)
+    base, d0, bound = (none, np.zeros(0), np.inf) if reach is None else (reach.base, reach.d0, reach.bound)
+    return plane_step(np.ascontiguousarray(data), np.ascontiguousarray(r), np.asarray(t, dtype=np.float64), dn,
+                      MIN_NORMAL_DOT, base, np.asarray(d0, dtype=np.float64), float(bound), float(radius_m),
+                      *grid.columns, np.ascontiguousarray(model), np.ascontiguousarray(normals), partner)
 
 
 def open3d_point_to_plane(

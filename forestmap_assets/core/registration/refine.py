@@ -82,6 +82,7 @@ from forestmap_assets.core.registration.two_way import (
     crop_mask,
     fuse_heading,
     two_way_refine,
+    with_objective_spread,
 )
 from forestmap_assets.params.men import RefineSettings
 
@@ -264,7 +265,9 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
     row = dict.fromkeys(REFINE_COLUMNS, np.nan)
     row.update({f"bnb_{k}": v for k, v in zip(POSE, pose, strict=True)})
     row.update({f"bnb_{k}": v for k, v in zip(SD, np.nan_to_num(np.asarray(sd, dtype=np.float64)), strict=True)})
-    res = two_way_refine(scan, ref, pose, settings)
+    # the objective's spread (one more refinement) only for the result kept: a splat found
+    # refines the pair again (a rendered survey's refinements 9.5 -> s)
+    res = two_way_refine(scan, ref, pose, settings, spread=False)
     splat, gain = (choose_splat(scan, ref, res["pose"], settings.splat_candidates_m, radius_m=settings.two_way_radii_m[-1],
                                 normal_k=settings.normal_k, min_gain=settings.splat_min_gain)
                    if res["used"] and settings.splat_candidates_m else (0.0, np.nan))
@@ -273,6 +276,8 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
         floor[2] = settings.splat_sd_z_per_m * splat**2  # its z no longer rests on raised ground
         res = two_way_refine(corrected(scan, splat), corrected(ref, splat), pose,
                              replace(settings, two_way_sd_floor=tuple(floor)))
+    else:
+        res = with_objective_spread(res, scan, ref, settings)
     if res["used"] and settings.heading_from == "both":
         res["pose"], res["sd"] = fuse_heading(res["pose"], res["sd"], pose, np.asarray(sd, dtype=np.float64),
                                               res["centre"], settings.heading_agree_sigmas)

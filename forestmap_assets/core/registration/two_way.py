@@ -329,13 +329,15 @@ def fuse_heading(refined, sd_refined, bnb, sd_bnb, centre,
     return refined, sd
 
 
-def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings) -> dict:
+def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings, spread: bool = True) -> dict:
     """Refine the pose of ``scan`` in ``ref``'s frame both ways and test the result (module doc).
     Returns ``pose``, ``sd``, ``used`` (bool), ``reason``, the fits and pair counts, and the
-    disagreement of the two directions ``disagree`` (x, y, z m, heading deg)."""
+    disagreement of the two directions ``disagree`` (x, y, z m, heading deg). ``spread=False``
+    leaves out :func:`objective_spread` (one more refinement; nothing else depends on it) for
+    :func:`with_objective_spread` to add once the result is known to be kept."""
     pose = np.asarray(pose, dtype=np.float64)
     out = {"pose": pose, "sd": np.full(4, np.nan), "used": False, "reason": "", "spread_along": np.nan,
-           "centre": np.full(3, np.nan),
+           "centre": np.full(3, np.nan), "forward": None,
            "fit_bnb_m": np.nan,
            "fit_refined_m": np.nan, "pairs_bnb": 0, "pairs_refined": 0, "iterations": 0,
            "disagree": np.full(4, np.nan), "n_data": len(scan.data), "n_model": len(ref.model)}
@@ -351,15 +353,13 @@ def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings)
     hess = np.nan_to_num(np.nanmax([w.sd for w in ways], axis=0), nan=np.inf)
     sd = np.asarray(s.two_way_sd_scale) * np.sqrt(hess**2 + (diff / 2) ** 2 + beam_sd(ways, s) ** 2)
     sd = np.maximum(sd, s.two_way_sd_floor)
-    spread = objective_spread(scan, ref, fwd.pose, s) if s.symmetric_pairs and s.objective_sd else np.nan
-    if s.objective_sd_scope == "link" and np.isfinite(spread):
-        sd[:2] = np.hypot(sd[:2], abs(spread) * np.abs(mean[:2]) / max(float(np.hypot(*mean[:2])), 1e-12))
-    out["spread_along"] = spread
     fit_b = float(np.mean([w.fit_start for w in ways]))
     fit_r = float(np.mean([w.fit_end for w in ways]))
     pairs_b, pairs_r = sum(w.pairs_start for w in ways), sum(w.pairs_end for w in ways)
     out.update(pose=mean, sd=sd, fit_bnb_m=fit_b, fit_refined_m=fit_r, pairs_bnb=pairs_b, pairs_refined=pairs_r,
-               iterations=sum(w.iterations for w in ways), disagree=diff, centre=fwd.centre)
+               iterations=sum(w.iterations for w in ways), disagree=diff, centre=fwd.centre, forward=fwd.pose)
+    if spread:
+        with_objective_spread(out, scan, ref, s)
     moved = np.abs(np.r_[mean[:3] - pose[:3], wrap_deg(mean[3] - pose[3])])
     tol = np.maximum(np.r_[s.agree_m, s.agree_m, s.agree_m, s.agree_deg], s.agree_sigmas * s.sd_inflation * hess)
     if np.any(moved[:3] >= s.max_shift_m * (1 - 1e-6)) or moved[3] >= s.max_turn_deg * (1 - 1e-6):
@@ -377,4 +377,18 @@ def two_way_refine(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSettings)
                          f"{abs(diff[3]):.3f} deg")
     else:
         out["used"] = True
+    return out
+
+
+def with_objective_spread(out: dict, scan: RefineCloud, ref: RefineCloud, s: RefineSettings) -> dict:
+    """``out`` of :func:`two_way_refine` with its ``spread_along`` (:func:`objective_spread` from
+    the forward direction's pose) and, with ``objective_sd_scope="link"``, that spread in its x, y
+    sigmas; unchanged where the refinement found too little overlap."""
+    if out["forward"] is None:
+        return out
+    spread = objective_spread(scan, ref, out["forward"], s) if s.symmetric_pairs and s.objective_sd else np.nan
+    if s.objective_sd_scope == "link" and np.isfinite(spread):
+        sd, mean = out["sd"], out["pose"]
+        sd[:2] = np.hypot(sd[:2], abs(spread) * np.abs(mean[:2]) / max(float(np.hypot(*mean[:2])), 1e-12))
+    out["spread_along"] = spread
     return out
