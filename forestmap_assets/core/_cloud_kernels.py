@@ -24,6 +24,22 @@ def lower_corner(p):
     return lo
 
 
+@nb.njit(cache=True)
+def bounds(p):
+    """``(p.min(axis=0), p.max(axis=0), np.isfinite(p).all())`` of ``p`` (n >= 1, 3) in one pass
+    over the rows (numpy's reductions along the first axis of an (n, 3) array took 9 ms each on
+    320,000 points; issue 16)."""
+    lo, hi = p[0].copy(), p[0].copy()
+    finite = True
+    for i in range(p.shape[0]):
+        for a in range(3):
+            v = p[i, a]
+            finite &= math.isfinite(v)
+            lo[a] = min(lo[a], v)
+            hi[a] = max(hi[a], v)
+    return lo, hi, finite
+
+
 @nb.njit(cache=True, nogil=True)
 def placed_points(x, y, z, pose):
     """Points (n, 3) float64 of the columns ``x, y, z`` placed with ``pose`` (x, y, z,

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from forestmap_assets.core._cloud_kernels import bounds
 from forestmap_assets.core._radius_grid_kernels import build_columns, nearest_within
 
 MAX_COLUMNS = 1 << 24  # a wider cloud gets wider columns (the queries stay exact)
@@ -26,10 +27,10 @@ class RadiusGrid:
         self.n = len(self.data)
         if not cell_m > 0:
             raise ValueError(f"cell_m: must be positive, got {cell_m}")
-        if not np.isfinite(self.data).all():
+        self.lo, self.hi, finite = bounds(self.data) if self.n else (np.zeros(3), np.zeros(3), True)
+        if not finite:
             raise ValueError("points: a radius grid needs finite points")
-        self.lo = self.data.min(axis=0) if self.n else np.zeros(3)
-        span = (self.data.max(axis=0) - self.lo)[:2] if self.n else np.zeros(2)
+        span = (self.hi - self.lo)[:2]
         cell = float(cell_m)
         while np.prod(np.floor(span / cell) + 1) > MAX_COLUMNS:
             cell *= 2.0

@@ -79,3 +79,23 @@ def test_radius_outlier_filter_removes_isolated_points():
     lonely = rng.uniform(5, 50, (20, 3))
     keep = radius_outlier_mask(np.vstack([dense, lonely]), 0.15, 3)
     assert keep[:2000].mean() > 0.99 and not keep[2000:].any()
+
+
+def test_one_pass_bounds_and_occupied_voxels_are_numpys():
+    """_cloud_kernels.bounds and icp_uncertainty._occupied_voxels (issue 16) give what numpy's
+    reductions and np.unique(axis=0) give, with negative coordinates and a non-finite value."""
+    from forestmap_assets.core._cloud_kernels import bounds
+    from forestmap_assets.core.registration.icp_uncertainty import _occupied_voxels
+
+    rng = np.random.default_rng(2)
+    p = rng.normal(0, 20, (5000, 3)) * [1, 3, 0.2]
+    lo, hi, finite = bounds(p)
+    np.testing.assert_array_equal(lo, p.min(axis=0))
+    np.testing.assert_array_equal(hi, p.max(axis=0))
+    assert finite and not bounds(np.vstack([p, [[0.0, np.inf, 0.0]]]))[2]
+    for voxel in (0.05, 0.5, 7.0):
+        want = len(np.unique(np.floor(p / voxel).astype(np.int64), axis=0))
+        assert _occupied_voxels(p, voxel) == want
+    assert _occupied_voxels(np.zeros((0, 3)), 0.5) == 0
+    wide = np.array([[4e18, 0, 0], [-4e18, 0, 0], [4e18, 0, 0]])  # too wide for one key: by rows
+    assert _occupied_voxels(wide, 1.0) == 2

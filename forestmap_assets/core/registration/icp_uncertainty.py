@@ -86,13 +86,26 @@ def icp_covariance(
         dof_obs = max(res.size - dof, 1)
         pts = p
     sigma2 = float((res**2).sum() / dof_obs)
-    keys = np.unique(np.floor(pts / correlation_m).astype(np.int64), axis=0)
-    inflation = len(pts) / max(len(keys), 1)
+    inflation = len(pts) / max(_occupied_voxels(pts, correlation_m), 1)
     try:
         cov = np.linalg.inv(h)
     except np.linalg.LinAlgError:
         return np.full((dof, dof), np.inf)
     return sigma2 * inflation * cov
+
+
+def _occupied_voxels(points: np.ndarray, voxel_m: float) -> int:
+    """How many voxels of edge ``voxel_m`` hold a point: the distinct rows of
+    ``floor(points / voxel_m)``, counted on one integer key a row (``np.unique(axis=0)`` sorts
+    rows as structures: 7 ms on 15,000 pairs, issue 16)."""
+    v = np.floor(points / voxel_m).astype(np.int64)
+    if len(v) == 0:
+        return 0
+    v -= v.min(axis=0)
+    span = v.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
+        return len(np.unique(v, axis=0))
+    return len(np.unique((v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2]))
 
 
 def pose_sd(cov: np.ndarray) -> np.ndarray:

@@ -46,6 +46,7 @@ import pandas as pd
 import pyarrow as pa
 from scipy.spatial import cKDTree
 
+from forestmap_assets.core._cloud_kernels import bounds
 from forestmap_assets.core.cloud import pca_normals, voxel_subsample, z_order
 from forestmap_assets.core.geometry import wrap_deg
 from forestmap_assets.core.radius_grid import RadiusGrid
@@ -101,7 +102,8 @@ class RefineCloud:
     def model_box(self) -> tuple[np.ndarray, np.ndarray]:
         """The model's bounding box (lower, upper corner), computed once."""
         if self._box is None:
-            self._box = (self.model.min(axis=0), self.model.max(axis=0))
+            lo, hi, finite = bounds(self.model) if len(self.model) else (None, None, False)
+            self._box = (lo, hi) if finite else (self.model.min(axis=0), self.model.max(axis=0))
         return self._box
 
     def with_data_normals(self, k: int) -> RefineCloud:
