@@ -203,6 +203,7 @@ def _run(
             summary.seconds = time.perf_counter() - start
             return summary
         session.start_workers()  # likely work to do: the workers start while the states are read
+        writer: _Writer | None = None
         attempts: dict[tuple[str, str | None], int] = {}
         first = True
         # the states read so far stand until something they depend on materialises (the campaign
@@ -312,8 +313,20 @@ def _run(
                     progress(f"  campaign: {', '.join(run)} (beside the map's files)")
                     session.run_late_campaign(run)
                     level = set()
-                map_ready(summary)
+                    map_ready(summary)
+                elif session.pending and session.can_run_late and not late:
+                    # scans' where-to-scan-next runs still going: the map's files in a thread,
+                    # and the stages after those runs start in a worker as soon as they end
+                    writer = _Writer(map_ready, summary)
+                else:
+                    map_ready(summary)
                 map_ready = None
+            if writer is not None and writer.is_alive() and level and level <= explore:
+                run = [s for s in level_stages if s in level]
+                count_attempts(attempts, {None: run})
+                progress(f"  campaign: {', '.join(run)} (beside the map's files)")
+                session.run_late_campaign(run)
+                continue
             if not level and (late or session.pending):
                 if late:  # nothing else to do: the late stages run now
                     count_attempts(attempts, late)
@@ -335,11 +348,34 @@ def _run(
                 count_attempts(attempts, background)
                 session.run_partitions("scan", {}, late=background)
             session.execute("campaign", stages, None, 1)
+        if writer is not None:
+            writer.finish()
     for stage, scan, _ in summary.failures:
         if scan is not None and materialised_before(instance, campaign, stage, scan):
             summary.kept_earlier.add(scan)
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+class _Writer(threading.Thread):
+    """``map_ready(summary)`` (the map's files) in a thread of this process, its error raised
+    where the session waits for it (:meth:`finish`)."""
+
+    def __init__(self, map_ready: Callable, summary: RunSummary):
+        super().__init__(name="map-files")
+        self._call, self._error = (lambda: map_ready(summary)), None
+        self.start()
+
+    def run(self) -> None:
+        try:
+            self._call()
+        except BaseException as exc:  # noqa: BLE001 - raised again in the session's thread
+            self._error = exc
+
+    def finish(self) -> None:
+        self.join()
+        if self._error is not None:
+            raise self._error
 
 
 def _late_stages(scan_stages: list[str], parents: dict[str, list[str]], granularity: dict[str, str]) -> list[str]:

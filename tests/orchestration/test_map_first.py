@@ -54,3 +54,22 @@ def test_occlusion_boundaries_wait_for_the_map_with_one_worker(tmp_path, monkeyp
     assert "occlusion_boundaries" not in seen[0], seen
     ran = [stage for stage, _ in summary.ran]
     assert "occlusion_boundaries" in ran and ran.index("tree_list") < ran.index("occlusion_boundaries")
+
+
+def test_the_map_files_thread_raises_its_error_where_the_session_waits():
+    """runner._Writer: the map's files written in a thread while scans' where-to-scan-next runs
+    end (issue 16); its error is not lost in the thread but raised by ``finish``."""
+    import threading
+
+    from forestmap_assets.orchestration.runner import _Writer
+
+    names = []
+    _Writer(lambda s: names.append((s, threading.current_thread().name)), "summary").finish()
+    assert names == [("summary", "map-files")]
+
+    def fails(summary):
+        raise OSError("outputs: read-only")
+
+    writer = _Writer(fails, None)
+    with pytest.raises(OSError, match="read-only"):
+        writer.finish()
