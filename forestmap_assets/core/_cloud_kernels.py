@@ -15,16 +15,6 @@ import numpy as np
 
 
 @nb.njit(cache=True)
-def lower_corner(p):
-    """``p.min(axis=0)`` in one pass over the rows."""
-    lo = p[0].copy()
-    for i in range(1, p.shape[0]):
-        for a in range(3):
-            lo[a] = min(lo[a], p[i, a])
-    return lo
-
-
-@nb.njit(cache=True)
 def bounds(p):
     """``(p.min(axis=0), p.max(axis=0), np.isfinite(p).all())`` of ``p`` (n >= 1, 3) in one pass
     over the rows (numpy's reductions along the first axis of an (n, 3) array took 9 ms each on
@@ -140,11 +130,7 @@ def _spread_bits(v):
 @nb.njit(cache=True)
 def morton_codes(p):
     """63-bit Morton (Z-order) codes of the points in their bounding box, 2^21 cells per axis."""
-    lo = lower_corner(p)
-    hi = p[0].copy()
-    for i in range(1, p.shape[0]):
-        for a in range(3):
-            hi[a] = max(hi[a], p[i, a])
+    lo, hi, _ = bounds(p)
     step = max(max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) / 0x1FFFFF, 1e-300)
     code = np.empty(p.shape[0], np.int64)
     for i in range(p.shape[0]):

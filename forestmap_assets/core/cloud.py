@@ -34,13 +34,9 @@ def voxel_subsample(points: np.ndarray, voxel_m: float, origin=None) -> np.ndarr
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) == 0:
         return np.zeros(0, dtype=np.int64)
-    from forestmap_assets.core._cloud_kernels import (
-        lower_corner,
-        voxel_numbers,
-        voxel_representatives,
-    )
+    from forestmap_assets.core._cloud_kernels import bounds, voxel_numbers, voxel_representatives
 
-    o = lower_corner(p) if origin is None else np.asarray(origin, dtype=np.float64)  # as voxel_keys
+    o = bounds(p)[0] if origin is None else np.asarray(origin, dtype=np.float64)  # as voxel_keys
     flat = voxel_numbers(p, float(voxel_m), o)
     order = _stable_order(flat)  # voxel by voxel, each in input order
     kept = np.zeros(len(p), dtype=bool)

@@ -312,25 +312,19 @@ def _run(
                 if session.pending and session.late_done():  # collected, then read again
                     session.wait_late()
                     continue
+                # scans' where-to-scan-next runs still going: the map's files in a thread, and
+                # the stages after those runs start in a worker as soon as they end
+                threaded = bool(session.pending) and session.can_run_late and not late
                 if level and session.can_run_late and not late and not session.pending:
-                    run = [s for s in level_stages if s in level]
-                    count_attempts(attempts, {None: run})
-                    progress(f"  campaign: {', '.join(run)} (beside the map's files)")
-                    session.run_late_campaign(run)
+                    _run_beside(session, attempts, [s for s in level_stages if s in level], progress)
                     level = set()
-                    map_ready(summary)
-                elif session.pending and session.can_run_late and not late:
-                    # scans' where-to-scan-next runs still going: the map's files in a thread,
-                    # and the stages after those runs start in a worker as soon as they end
+                if threaded:
                     writer = _Writer(map_ready, summary)
                 else:
                     map_ready(summary)
                 map_ready = None
             if writer is not None and writer.is_alive() and level and level <= explore:
-                run = [s for s in level_stages if s in level]
-                count_attempts(attempts, {None: run})
-                progress(f"  campaign: {', '.join(run)} (beside the map's files)")
-                session.run_late_campaign(run)
+                _run_beside(session, attempts, [s for s in level_stages if s in level], progress)
                 continue
             if not level and (late or session.pending):
                 if late:  # nothing else to do: the late stages run now
@@ -360,6 +354,14 @@ def _run(
             summary.kept_earlier.add(scan)
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def _run_beside(session: Session, attempts: dict, run: list[str], progress: Callable[[str], None]) -> None:
+    """The campaign-level where-to-scan-next stages ``run`` left running in a worker beside the
+    map's files (issue 16)."""
+    count_attempts(attempts, {None: run})
+    progress(f"  campaign: {', '.join(run)} (beside the map's files)")
+    session.run_late_campaign(run)
 
 
 class _Writer(threading.Thread):

@@ -9,7 +9,7 @@ from forestmap_assets.orchestration.kernel_cache import kernel_modules
 LOAD = """
 from forestmap_assets.core import _cloud_kernels as k
 from forestmap_assets.orchestration.kernel_cache import load_cached_kernels
-print(load_cached_kernels(), len(k.lower_corner.signatures), len(k.voxel_numbers.signatures))
+print(load_cached_kernels(), len(k.bounds.signatures), len(k.voxel_numbers.signatures))
 """
 
 
@@ -22,7 +22,7 @@ def test_every_kernel_module_is_listed():
 
 def test_only_cached_signatures_are_loaded(tmp_path):
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))  # an empty cache of this test's own
-    compile_one = "import numpy as np; from forestmap_assets.core import _cloud_kernels as k; k.lower_corner(np.zeros((3, 3)))"
+    compile_one = "import numpy as np; from forestmap_assets.core import _cloud_kernels as k; k.bounds(np.zeros((3, 3)))"
     subprocess.run([sys.executable, "-c", compile_one], env=env, check=True)
     out = subprocess.run([sys.executable, "-c", LOAD], env=env, check=True, capture_output=True, text=True)
     loaded, corner, numbers = (int(v) for v in out.stdout.split())

@@ -265,8 +265,8 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
     row = dict.fromkeys(REFINE_COLUMNS, np.nan)
     row.update({f"bnb_{k}": v for k, v in zip(POSE, pose, strict=True)})
     row.update({f"bnb_{k}": v for k, v in zip(SD, np.nan_to_num(np.asarray(sd, dtype=np.float64)), strict=True)})
-    # the objective's spread (one more refinement) only for the result kept: a splat found
-    # refines the pair again (a rendered survey's refinements 9.5 -> s)
+    # the objective's spread (one more refinement) only for the result kept: where a splat is
+    # found (every rendered pair) the pair is refined again and this first result is dropped
     res = two_way_refine(scan, ref, pose, settings, spread=False)
     splat, gain = (choose_splat(scan, ref, res["pose"], settings.splat_candidates_m, radius_m=settings.two_way_radii_m[-1],
                                 normal_k=settings.normal_k, min_gain=settings.splat_min_gain)
