@@ -255,16 +255,9 @@ def cmd_run(args) -> int:
         out = args.out or summary.campaign.root / "outputs"
         early.extend(write_exports(summary.campaign, out, cloud_spacing_m=options["cloud"],
                                    picture=not args.no_report, progress=progress, map_only=True,
-                                   stored=loaded))
+                                   stored=loaded, pieces=options["report"]))  # the report's figures too
         _say(args, f"map written to {out}: {', '.join(p.name for p in early)}"
              + ("; where to scan next follows" if options["report"] else ""))
-        if options["report"]:  # the report's figures, while the where-to-scan-next stages run
-            from forestmap_assets.outputs.report import PIECES, draw_report_pieces
-
-            try:
-                draw_report_pieces(summary.campaign, out, loaded)
-            except Exception:  # noqa: BLE001 - the report after the run draws it again and says why
-                loaded.pop(PIECES, None)
 
     with use(progress):  # steps running in this process (in_process executor) report into it
         summary = run_campaign(args.campaign, executor=args.executor, progress=progress,

@@ -169,8 +169,13 @@ def write_exports(
     timings: pd.DataFrame | None = None,
     map_only: bool = False,
     stored: dict | None = None,
+    pieces: bool = False,
 ) -> list[Path]:
     """Write every export that the stored assets allow; return the paths.
+
+    ``map.png`` is rendered in a thread beside the other files (:class:`_MapPicture`), and so
+    are the report's figures (``pieces``, and always before ``report.html``:
+    :func:`~forestmap_assets.outputs.report.draw_report_pieces`).
 
     ``stored``: a dict that keeps the assets read (by name) and is read from where it has them,
     so that a report written later (:func:`~forestmap_assets.outputs.report.write_report`)
@@ -240,27 +245,71 @@ def write_exports(
         steps.append(
             ("cloud.laz + cloud.ply", lambda p: write_clouds(campaign, poses, out, cloud_spacing_m))
         )
-    if picture:
+    report = report and not map_only
+    picture_job = _MapPicture(out / "map.png", integrated["cylinders"], grid, poses, title=title,
+                              reference=reference) if picture else None
+    try:
+        with prog.bar(len(steps) + bool(picture) + report, "exports", unit="file") as bar:
+            for name, write in steps:
+                result = write(out / name)
+                written.extend(result if isinstance(result, list) else [result])
+                bar.update(note=name)
+            if pieces or report:
+                _draw_pieces(campaign, out, stored)
+            if picture_job is not None:
+                written.append(picture_job.join())
+                bar.update(note="map.png")
+            if report:
+                from forestmap_assets.outputs.report import write_report
+
+                written.append(write_report(campaign, out, timings=timings, stored=stored))
+                bar.update(note="report.html")
+    finally:
+        if picture_job is not None:
+            picture_job.thread.join()
+    return written
+
+
+class _MapPicture:
+    """``map.png`` rendered by VTK in a thread while the calling thread writes the other files
+    and draws the report's figures: VTK lets go of the GIL while it renders (a rendered
+    survey's map 1.0 s and report figures 0.9 s took 1.2 s side by side against 1.85 s one after
+    the other, issue 16). When VTK cannot render, :meth:`join` draws the matplotlib picture in
+    the calling thread (matplotlib's figures are not for two threads at once)."""
+
+    def __init__(self, path: Path, cylinders, grid, poses, **kwargs):
+        import threading
+
+        self.args, self.kwargs, self.error = (path, cylinders, grid, poses), kwargs, None
+        self.thread = threading.Thread(target=self._render, name="map.png", daemon=True)
+        self.thread.start()
+
+    def _render(self) -> None:
         from forestmap_assets.outputs.render import render_map
 
-        steps.append(
-            (
-                "map.png",
-                lambda p: render_map(
-                    p, integrated["cylinders"], grid, poses, title=title, reference=reference
-                ),
-            )
-        )
-    if report and not map_only:
-        from forestmap_assets.outputs.report import write_report
+        try:
+            render_map(*self.args, fallback=False, **self.kwargs)
+        except Exception as exc:  # noqa: BLE001 - join() draws the fallback picture
+            self.error = exc
 
-        steps.append(("report.html", lambda p: write_report(campaign, out, timings=timings, stored=stored)))
-    with prog.bar(len(steps), "exports", unit="file") as bar:
-        for name, write in steps:
-            result = write(out / name)
-            written.extend(result if isinstance(result, list) else [result])
-            bar.update(note=name)
-    return written
+    def join(self) -> Path:
+        self.thread.join()
+        if self.error is None:
+            return self.args[0]
+        from forestmap_assets.outputs.render import save_map_mpl
+
+        return save_map_mpl(*self.args, title=self.kwargs.get("title", ""))
+
+
+def _draw_pieces(campaign: Campaign, out: Path, stored: dict) -> None:
+    """The report's figures, kept in ``stored`` for ``report.html``; a failure is left to the
+    report, which draws them again and says why."""
+    from forestmap_assets.outputs.report import PIECES, draw_report_pieces
+
+    try:
+        draw_report_pieces(campaign, out, stored)
+    except Exception:  # noqa: BLE001
+        stored.pop(PIECES, None)
 
 
 def write_geojson(trees: pd.DataFrame, path: Path, campaign: Campaign) -> Path:

@@ -387,9 +387,7 @@ def render_map(
     **kwargs,
 ) -> Path:
     """Write ``map.png`` (atomically): the pyvista scene of :func:`map_plotter`; with
-    ``fallback`` a matplotlib 3-D picture when VTK cannot render here."""
-    from forestmap_assets.outputs.figures.common import save_png
-
+    ``fallback`` a matplotlib 3-D picture when VTK cannot render here (:func:`save_map_mpl`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -399,9 +397,7 @@ def render_map(
     except Exception:
         if not fallback:
             raise
-        return save_png(
-            map_figure_mpl(cylinders, grid, poses, title=title + " (matplotlib fallback)"), path
-        )
+        return save_map_mpl(path, cylinders, grid, poses, title=title)
     from PIL import Image
 
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}.png")
@@ -412,6 +408,13 @@ def render_map(
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+def save_map_mpl(path, cylinders: pd.DataFrame, grid=None, poses=None, *, title: str = "") -> Path:
+    """``map.png`` as the matplotlib 3-D picture of :func:`map_figure_mpl` (VTK cannot render)."""
+    from forestmap_assets.outputs.figures.common import save_png
+
+    return save_png(map_figure_mpl(cylinders, grid, poses, title=title + " (matplotlib fallback)"), Path(path))
 
 
 def map_figure_mpl(

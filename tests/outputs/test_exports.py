@@ -374,3 +374,31 @@ def test_report_after_the_map_reuses_its_assets_and_drawn_pieces(filled, tmp_pat
     assert len(drawn) == 3  # network, residuals, DBH
     stamp = re.compile(r"report written [^<]*")
     assert stamp.sub("", reused) == stamp.sub("", fresh)
+
+
+def test_map_picture_beside_the_files_and_its_fallback_in_the_calling_thread(filled, tmp_path, monkeypatch):
+    """map.png renders in a thread while the other files and the report's figures are made
+    (``pieces``); when VTK cannot render, the matplotlib picture is drawn by the calling
+    thread, not beside matplotlib's other figures."""
+    import threading
+
+    from forestmap_assets.outputs import render
+    from forestmap_assets.outputs.report import PIECES
+
+    threads = []
+
+    def broken(*args, **kwargs):
+        threads.append(threading.current_thread())
+        raise RuntimeError("no OpenGL here")
+
+    real = render.save_map_mpl
+    monkeypatch.setattr(render, "map_image", broken)
+    monkeypatch.setattr(render, "save_map_mpl",
+                        lambda *a, **kw: threads.append(threading.current_thread()) or real(*a, **kw))
+    out, stored = tmp_path / "outputs", {}
+    written = write_exports(filled, out, cloud_spacing_m=None, map_only=True, stored=stored, pieces=True)
+    assert [p.name for p in written][-1] == "map.png"
+    assert (out / "map.png").read_bytes()[:4] == b"\x89PNG"
+    assert threads[0] is not threading.main_thread() and threads[1] is threading.main_thread()
+    assert {"network", "residuals", "dbh"} <= set(stored[PIECES])
+    assert not (out / "report.html").exists()
