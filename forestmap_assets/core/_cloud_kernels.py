@@ -81,11 +81,15 @@ def voxel_numbers(p, voxel_m, origin):
 
 
 @nb.njit(cache=True, nogil=True)
-def voxel_representatives(p, order, flat, voxel_m):
+def voxel_representatives(p, order, flat, voxel_m, origin):
     """Input rows of the representative of each voxel: ``order`` lists the rows voxel by voxel
     (stable: each voxel's points in input order), ``flat`` their voxel numbers in that order.
-    The representative is the point nearest the voxel's centroid; ties go to the
-    lexicographically smallest point, then to the first in input order."""
+    The representative is the point nearest the voxel's centroid; ties (the two points of every
+    two-point voxel) go to the point nearest the voxel's centre (``origin``: the grid's corner),
+    which favours no direction, then to the lexicographically smallest point, then to the first
+    in input order. (Ties to the lexicographically smallest point moved every two-point voxel's
+    representative toward -x, by half the pair's x spacing: a displacement of each scan's
+    thinned cloud along its own x axis.)"""
     n = len(order)
     out = np.empty(n, np.int64)
     v2 = voxel_m * voxel_m
@@ -101,15 +105,22 @@ def voxel_representatives(p, order, flat, voxel_m):
             cy += p[order[t], 1]
             cz += p[order[t], 2]
         cx, cy, cz = cx / (e - s), cy / (e - s), cz / (e - s)
+        i0 = order[s]  # the voxel's centre, from its first point
+        gx = origin[0] + (math.floor((p[i0, 0] - origin[0]) / voxel_m) + 0.5) * voxel_m
+        gy = origin[1] + (math.floor((p[i0, 1] - origin[1]) / voxel_m) + 0.5) * voxel_m
+        gz = origin[2] + (math.floor((p[i0, 2] - origin[2]) / voxel_m) + 0.5) * voxel_m
         best = order[s]
         bd = np.inf
+        bg = np.inf
         for t in range(s, e):
             i = order[t]
             x, y, z = p[i, 0], p[i, 1], p[i, 2]
             d = np.rint(((x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2) / v2 * 1e9) / 1e9
+            g = ((x - gx) ** 2 + (y - gy) ** 2 + (z - gz) ** 2) / v2
             b = p[best]
-            if d < bd or (d == bd and (x < b[0] or (x == b[0] and (y < b[1] or (y == b[1] and z < b[2]))))):
-                best, bd = i, d
+            if d < bd or (d == bd and (g < bg or (g == bg and (
+                    x < b[0] or (x == b[0] and (y < b[1] or (y == b[1] and z < b[2]))))))):
+                best, bd, bg = i, d, g
         out[nv] = best
         nv += 1
         s = e

@@ -27,7 +27,8 @@ def voxel_subsample(points: np.ndarray, voxel_m: float, origin=None) -> np.ndarr
     ``voxel_m`` keeps the point nearest to the centroid of its points, so the kept point (and its
     colour) is an actual measurement (spec 3.2 recommendation, inferred); ties (distances rounded
     to 1e-9 voxel^2, so that e.g. the two points of a two-point voxel tie exactly) go to the
-    lexicographically smallest point. Every voxel with an input point keeps exactly one, and the
+    point nearest the voxel's centre (no preferred direction), then to the lexicographically
+    smallest point. Every voxel with an input point keeps exactly one, and the
     result does not depend on the input order (one sort, then one pass:
     :mod:`forestmap_assets.core._cloud_kernels`).
     """
@@ -40,7 +41,7 @@ def voxel_subsample(points: np.ndarray, voxel_m: float, origin=None) -> np.ndarr
     flat = voxel_numbers(p, float(voxel_m), o)
     order = _stable_order(flat)  # voxel by voxel, each in input order
     kept = np.zeros(len(p), dtype=bool)
-    kept[voxel_representatives(p, order, flat[order], float(voxel_m))] = True
+    kept[voxel_representatives(p, order, flat[order], float(voxel_m), o)] = True
     return np.flatnonzero(kept)
 
 
