@@ -1,13 +1,15 @@
 """What every worker process needs, imported once in the fork server that forks them
-(:mod:`.forkserver`): the session (Dagster and the asset modules), Open3D and SciPy's k-d trees
-(the per-scan stages), Dagster's SQLite storage (the worker's instance), numba's CPU target
-(initialised once, about 0.4 s, instead of at each worker's first compiled kernel) and the cached
-kernels but the parallel ones (about 0.4 s, once rather than in every worker). Nothing here
-starts a thread, so the fork server may fork after it."""
+(:mod:`.forkserver`): the session (Dagster and the asset modules), Open3D (without its plotly
+viewer) and SciPy's k-d trees (the per-scan stages), Dagster's SQLite storage (the worker's
+instance), numba's CPU target (initialised once, about 0.4 s, instead of at each worker's first
+compiled kernel) and the cached kernels but the parallel ones (about 0.4 s, once rather than in
+every worker). Nothing here starts a thread, so the fork server may fork after it."""
 
 from __future__ import annotations
 
-import open3d  # noqa: F401
+import sys
+import types
+
 import scipy.spatial  # noqa: F401
 from dagster._core.storage.event_log.sqlite.sqlite_event_log import (  # noqa: F401
     SqliteEventLogStorage,
@@ -16,6 +18,22 @@ from dagster._core.storage.runs.sqlite.sqlite_run_storage import SqliteRunStorag
 from dagster._core.storage.sqlite_storage import DagsterSqliteStorage  # noqa: F401
 
 import forestmap_assets.orchestration.session  # noqa: F401
+
+
+def _open3d() -> None:
+    """Open3D, without its plotly viewer: its package imports the viewer, and with it Dash and
+    plotly (0.3-0.5 s of the fork server's start-up, on the way to the first scan). A stand-in
+    module takes the viewer's place in the fork server, which no notebook shares; a worker
+    draws nothing with Open3D."""
+    name = "open3d.visualization.draw_plotly"
+    if name not in sys.modules:
+        stand_in = types.ModuleType(name, "Open3D's plotly viewer, not loaded in forestmap's workers")
+        stand_in.get_plotly_fig = stand_in.draw_plotly = stand_in.draw_plotly_server = None
+        sys.modules[name] = stand_in
+    import open3d  # noqa: F401
+
+
+_open3d()
 
 
 def _numba_target() -> None:

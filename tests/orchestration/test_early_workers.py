@@ -76,3 +76,20 @@ def test_campaign_key_is_the_one_of_the_campaign():
 
     assert campaign_key("plot 7") == "plot_7"
     assert campaign_key("2024-plot") == "c_2024_plot"
+
+
+def test_worker_libraries_leave_out_open3ds_plotly_viewer():
+    """The fork server's libraries: Open3D works (the refinement clouds' normals) without Dash and
+    plotly, which its package would import for its plotly viewer (0.3-0.5 s of the start-up)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "import forestmap_assets.orchestration.worker_libraries\n"
+        "from forestmap_assets.core.registration.two_way import sensor_normals\n"
+        "n = sensor_normals(np.random.default_rng(0).normal(size=(200, 3)) * [1, 1, 0.01] + [0, 0, -1], 10)\n"
+        "print(sorted({'dash', 'plotly'} & set(sys.modules)), bool(np.all(n[:, 2] > 0.9)))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["[]", "True"]
