@@ -16,7 +16,7 @@ from forestmap_assets.core.features._circle_kernels import FIT_CODES, _nb_phase,
 from forestmap_assets.core.features.circle_axes import estimate_axes
 from forestmap_assets.core.features.circle_fit import _reduce, fit_groups_numpy
 from forestmap_assets.core.features.range_image import RangeImage
-from forestmap_assets.core.features.segment_neighbours import neighbour_pairs
+from forestmap_assets.core.features.segment_neighbours import neighbour_pairs, segment_layout
 from forestmap_assets.core.features.segments import pixel_xyz, segment_pixels
 from forestmap_assets.params import CircleParams, SegmentationParams
 
@@ -75,6 +75,15 @@ class _SegData:
     pts: np.ndarray  # (P, 3) levelled inlier points grouped by segment
     el_step: float
 
+    def __post_init__(self) -> None:
+        # computed once for every phase: the coordinates as contiguous columns (the kernel's
+        # input) and each segment's centroid, whose dot with an axis is the mean height of the
+        # segment's points along it (5 phases of per-point heights: 0.15 s a scan of 0.7 M points)
+        self.columns = tuple(np.ascontiguousarray(self.pts[:, i]) for i in range(3))
+        own = np.diff(self.pptr)
+        self.centroid = _reduce(self.pts, self.pptr) / np.maximum(own, 1)[:, None]
+        self.layout = None  # the segments' neighbour layout, made at the first phase
+
 
 def _circle_phase(
     sd: _SegData,
@@ -104,27 +113,23 @@ def _circle_phase(
         return res
     e1, e2 = plane_frames(normals)
     own = np.diff(sd.pptr)
-    seg_of_pt = np.repeat(np.arange(n_seg), own)
-    h_pts = np.einsum("ij,ij->i", sd.pts, normals[seg_of_pt])
-    hbar = _reduce(h_pts, sd.pptr) / np.maximum(own, 1)
+    hbar = np.einsum("ij,ij->i", sd.centroid, normals)  # mean height of a segment's points
     # rows needed to cover +-collect_height along n (pruning only; the exact test is per point)
     tilt = np.arccos(np.clip(normals[:, 2], -1, 1))
     pitch_v = sd.r_mid * sd.el_step
     need = (collect_height_m + sd.width * np.sin(tilt)) / (pitch_v * np.cos(tilt))
     k_rows = np.minimum(k_max, np.ceil(need) + 1).astype(np.int64)
     k_rows = np.where(todo, k_rows, -1)
-    ps, pt = neighbour_pairs(sd, k_rows)
+    if sd.layout is None:
+        sd.layout = segment_layout(sd)
+    ps, pt = neighbour_pairs(sd, k_rows, layout=sd.layout)
     keep = todo[ps]
     ps, pt = ps[keep], pt[keep]
-    pair_n = own[pt]
-    per_seg = np.bincount(ps, weights=pair_n, minlength=n_seg).astype(np.int64)
     segs = np.flatnonzero(todo)
     if engine == "numba":
         pair_ptr = np.searchsorted(ps, np.concatenate([segs, [n_seg]]))
         out, ok, npts = _nb_phase(
-            np.ascontiguousarray(sd.pts[:, 0]),
-            np.ascontiguousarray(sd.pts[:, 1]),
-            np.ascontiguousarray(sd.pts[:, 2]),
+            *sd.columns,
             sd.pptr,
             segs,
             pair_ptr,
@@ -160,6 +165,8 @@ def _circle_phase(
         )
         return res
     # numpy engine: batches of circles bounded in gathered points (memory), in segment order
+    pair_n = own[pt]
+    per_seg = np.bincount(ps, weights=pair_n, minlength=n_seg).astype(np.int64)
     csum = np.cumsum(per_seg[segs])
     cuts = np.searchsorted(
         csum, np.arange(max_batch_points, csum[-1] + max_batch_points, max_batch_points), "right"

@@ -10,7 +10,8 @@ import numpy as np
 from forestmap_assets.core.features._neighbour_kernels import HAVE_NUMBA, nb_neighbour_pairs
 
 
-def neighbour_pairs(sd, k_rows: np.ndarray, compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def neighbour_pairs(sd, k_rows: np.ndarray, compiled: bool = True,
+                    layout: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (s, t): t in the chain of s, |row_t - row_s| <= k_rows[s], column intervals overlap
     (spec 3.2, "overlapping segments above and below"). Sorted by s, then as the segments'
     (chain, row) and index; includes (s, s).
@@ -23,24 +24,22 @@ def neighbour_pairs(sd, k_rows: np.ndarray, compiled: bool = True) -> tuple[np.n
     the numba kernel where it exists (the same pairs), which finds a row's segments in a table
     of each chain's rows (:func:`_row_cells`) and searches only among them: on a scan rendered
     inside a registered cloud (88 k segments, 5.4 M pairs over a run's four phases) 0.75 s on
-    one thread when both searches spanned every segment, 0.18 s now; else in numpy."""
+    one thread when both searches spanned every segment, 0.18 s now; else in numpy.
+    ``layout``: :func:`segment_layout` of ``sd``, when the caller keeps it for several calls
+    (the circle models' phases: only the rows within reach change)."""
     n = sd.row.size
-    nrows = int(sd.row.max()) + 2
-    key = sd.chain * nrows + sd.row
-    order = np.lexsort((sd.col0, key))
-    skey, c0, c1 = key[order], sd.col0[order], sd.col1[order]
-    width = int(max(sd.col1.max(), sd.col0.max())) + 2
-    by_c1 = skey * width + c1
-    if np.any(np.diff(by_c1) < 0):  # overlapping segments in a row: the plain listing
+    nrows, key, order, width, by_c1, cells = layout or segment_layout(sd)
+    if cells is None:  # overlapping segments in a row: the plain listing
         return neighbour_pairs_listed(sd, k_rows, key)
     k_max = int(k_rows.max(initial=-1))
     if k_max < 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    c0 = sd.col0[order]
     if compiled and HAVE_NUMBA:
         i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)  # noqa: E731
-        return nb_neighbour_pairs(i64(c0), i64(c1), i64(order), *_row_cells(sd.chain, sd.row, order),
+        return nb_neighbour_pairs(i64(c0), i64(sd.col1[order]), i64(order), *cells,
                                   i64(sd.row), i64(sd.col0), i64(sd.col1), i64(k_rows))
-    by_c0 = skey * width + c0
+    by_c0 = key[order] * width + c0
     offs = np.arange(-k_max, k_max + 1)
     s = np.repeat(np.arange(n), offs.size)
     d = np.tile(offs, n)
@@ -57,6 +56,22 @@ def neighbour_pairs(sd, k_rows: np.ndarray, compiled: bool = True) -> tuple[np.n
     pt = order[np.repeat(lo, cnt) + (np.arange(ps.size) - np.repeat(first, cnt))]
     ordered = np.lexsort((pt, key[pt], ps))
     return ps[ordered], pt[ordered]
+
+
+def segment_layout(sd) -> tuple:
+    """What :func:`neighbour_pairs` needs of the segments ``sd`` whatever the rows within reach:
+    ``(nrows, key, order, width, by_c1, cells)``: ``key`` chain and row, ``order`` the (chain,
+    row, col0) order, ``by_c1`` the sorted segments' (key, col1) codes, ``cells`` the chains'
+    rows (:func:`_row_cells`), None where a row holds overlapping segments (``by_c1`` does not
+    ascend)."""
+    nrows = int(sd.row.max()) + 2
+    key = sd.chain * nrows + sd.row
+    order = np.lexsort((sd.col0, key))
+    width = int(max(sd.col1.max(), sd.col0.max())) + 2
+    by_c1 = key[order] * width + sd.col1[order]
+    disjoint = not np.any(np.diff(by_c1) < 0)
+    cells = _row_cells(sd.chain, sd.row, order) if disjoint else None
+    return nrows, key, order, width, by_c1, cells
 
 
 def _row_cells(chain: np.ndarray, row: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, ...]:
