@@ -150,3 +150,39 @@ def morton_codes(p):
             c |= _spread_bits(min(int(math.floor((p[i, a] - lo[a]) / step)), 0x1FFFFF)) << a
         code[i] = c
     return code
+
+
+@nb.njit(cache=True, nogil=True)
+def stable_argsort(keys, max_key):
+    """``np.argsort(keys, kind="stable")`` of non-negative int64 ``keys`` up to ``max_key``: an
+    LSD radix sort by 11-bit digits, the keys carried beside their indices (as many passes as
+    ``max_key`` has digits: 3 for the 5 cm voxels of a scan's 40 m box, where numpy's sort of
+    1.5 M composite keys took 60-90 ms); a digit all keys share is skipped."""
+    n = keys.size
+    bits = 1
+    while bits < 63 and (np.int64(1) << bits) <= max_key:
+        bits += 1
+    n_digits = (bits + 10) // 11
+    count = np.zeros((n_digits, 2049), np.int64)
+    for i in range(n):  # the histograms of all digits in one read
+        k = keys[i]
+        for d in range(n_digits):
+            count[d, ((k >> (11 * d)) & 2047) + 1] += 1
+    key, idx = keys.copy(), np.arange(n)
+    key2, idx2 = np.empty_like(key), np.empty_like(idx)
+    for d in range(n_digits):
+        offset = count[d]
+        if offset.max() == n:  # one bucket holds every key: this digit leaves the order
+            continue
+        for b in range(2048):
+            offset[b + 1] += offset[b]
+        shift = 11 * d
+        for i in range(n):
+            b = (key[i] >> shift) & 2047
+            j = offset[b]
+            key2[j] = key[i]
+            idx2[j] = idx[i]
+            offset[b] = j + 1
+        key, key2 = key2, key
+        idx, idx2 = idx2, idx
+    return idx
