@@ -7,8 +7,9 @@ of compiling on a 2-core machine: the branch-and-bound search alone 90 s). ``scr
 runs this module after installing: it simulates a small campaign (three quarter-resolution
 scans of realistic stems, no prior; two unorganised PLY clouds without a sensor step, which take
 the projection path with its step estimate, and one organised npz range image) in a temporary
-folder and runs the whole pipeline on it with a temporary home, so every stage's kernels are
-compiled with the argument types a real run gives them. Nothing outside the temporary folder is
+folder and runs the whole pipeline on it with a temporary home, then a full-turn LAZ scan and two
+fine PLY clouds as other tools write them (:func:`full_turn_campaign`, :func:`fine_ply_campaign`),
+so every stage's kernels are compiled with the argument types a real run gives them. Nothing outside the temporary folder is
 written but the kernel cache and a stamp beside it: the fingerprint of the kernels' sources, so
 that the next set-up skips this step until a kernel changes.
 
@@ -85,6 +86,36 @@ def full_turn_campaign(root: Path) -> Path:
     return camp
 
 
+def fine_ply_campaign(root: Path) -> Path:
+    """A two-scan campaign in ``root/fine_ply``: unorganised PLY clouds at 0.1 deg without
+    intensity, as other tools write them: ``D`` with float64 coordinates (Sylva's simulator),
+    ``F`` with float32 coordinates and RGB (clouds rendered from a registered TLS cloud). Their
+    rows are finer than the segments' ``min_line_step_deg``, so the segments see every second
+    row (writable copies, not the stored table's read-only columns): the kernels' argument types
+    the quarter-resolution campaign does not give (a first run on Sylva's or rendered scans
+    otherwise compiled five kernels, 1-2 s in each worker)."""
+    import numpy as np
+
+    from forestmap_assets.sim.cloud_render import write_ply_xyz
+    from forestmap_assets.sim.forest import make_forest
+    from forestmap_assets.sim.scanner import ScanPose, VirtualScanner
+
+    world = make_forest(12, 20.0, n_scans=2, seed=np.random.default_rng(8))
+    camp = root / "fine_ply"
+    camp.mkdir()
+    scanner = VirtualScanner(world, hfov_deg=360.0, vfov_deg=40.0, n_cols=3600, n_rows=400)
+    for i, sid in enumerate(("D", "F")):
+        x, y = (float(v) for v in world.scan_xy[i])
+        z = float(world.ground.height(np.array([x]), np.array([y]))[0]) + 1.5
+        xyz, _ = scanner.scan_points(ScanPose(x, y, z, heading_deg=40.0 * i), seed=i, jitter_steps=0.3)
+        rgb = None if sid == "D" else np.full((len(xyz), 3), 128, np.uint8)
+        write_ply_xyz(camp / f"{sid}.ply", xyz, rgb, double=sid == "D")
+    doc = {"name": "warm-kernels-fine-ply", "environment": "forest",
+           "scans": [{"id": s, "path": f"{s}.ply"} for s in ("D", "F")]}
+    (camp / "campaign.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return camp
+
+
 def fingerprint() -> str:
     """The kernels' sources, numba's version and the cache folder, hashed."""
     import numba
@@ -117,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             _forestmap(["run", str(warm_campaign(root, env))], env)
             _forestmap(["run", str(full_turn_campaign(root)), "--no-cloud"], env)
+            _forestmap(["run", str(fine_ply_campaign(root)), "--no-cloud"], env)
         except RuntimeError as exc:
             print(f"warm_kernels: {exc}; the first run will compile what is missing", file=sys.stderr)
             return 1

@@ -35,3 +35,22 @@ def test_the_full_turn_cloud_takes_the_paths_a_big_scan_takes(tmp_path):
     az = np.degrees(np.arctan2(np.asarray(las.y), np.asarray(las.x)))
     assert az.size > 200_000
     assert (azimuth_bins(az, 1, 36_000, 0.01) > 0).all()
+
+
+def test_the_fine_ply_clouds_take_the_paths_foreign_scans_take(tmp_path):
+    """The warm-up's PLY clouds are written as Sylva's simulator (float64 coordinates) and the
+    renders of a registered cloud (float32, RGB) write theirs, without intensity, and their rows
+    are fine enough that the segments see every second row (the kernels then get writable
+    copies): the argument types a first run on such scans would otherwise compile."""
+    from forestmap_assets.assets.ingest import read_campaign_scan
+    from forestmap_assets.core.features.segments import feature_scan_lines
+    from forestmap_assets.io.campaign import load_campaign
+
+    camp = load_campaign(warm_kernels.fine_ply_campaign(tmp_path))
+    for sid, coord in (("D", "double"), ("F", "float")):
+        head = camp.scan(sid).path.read_bytes()[:300].decode("ascii", "replace")
+        assert f"property {coord} x" in head and "intensity" not in head
+        assert ("red" in head) == (sid == "F")
+        image = read_campaign_scan(camp, sid)
+        lines = feature_scan_lines(image, camp.params.segmentation.min_line_step_deg)
+        assert lines.shape[0] <= (image.shape[0] + 1) // 2  # every second row or fewer

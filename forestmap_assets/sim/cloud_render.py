@@ -89,13 +89,15 @@ def render_scan(points: np.ndarray, origin, *, step_deg: float = 0.1, splat_m: f
     return (ray * dep[:, None], index[s]) if source else ray * dep[:, None]
 
 
-def write_ply_xyz(path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> None:
-    """A binary little-endian PLY of float32 ``x, y, z`` (and uchar ``red, green, blue`` from
-    ``rgb``, (n, 3) uint8), written atomically."""
+def write_ply_xyz(path, xyz: np.ndarray, rgb: np.ndarray | None = None, *, double: bool = False) -> None:
+    """A binary little-endian PLY of float32 ``x, y, z`` (float64 with ``double``, as Sylva's
+    simulator writes them; and uchar ``red, green, blue`` from ``rgb``, (n, 3) uint8), written
+    atomically."""
     from forestmap_assets.io.writers import atomic_write
 
     xyz = np.asarray(xyz).reshape(-1, 3)
-    names = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + (
+    real = "<f8" if double else "<f4"
+    names = [("x", real), ("y", real), ("z", real)] + (
         [] if rgb is None else [("red", "u1"), ("green", "u1"), ("blue", "u1")])
     table = np.empty(len(xyz), names)
     for i, c in enumerate("xyz"):
@@ -103,7 +105,8 @@ def write_ply_xyz(path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> None:
     if rgb is not None:
         for i, c in enumerate(("red", "green", "blue")):
             table[c] = rgb[:, i]
-    props = "".join(f"property {'float' if t == '<f4' else 'uchar'} {n}\n" for n, t in names)
+    kinds = {"<f4": "float", "<f8": "double", "u1": "uchar"}
+    props = "".join(f"property {kinds[t]} {n}\n" for n, t in names)
     head = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\n{props}end_header\n"
     with atomic_write(path) as tmp:
         with open(tmp, "wb") as f:
