@@ -7,11 +7,12 @@ of compiling on a 2-core machine: the branch-and-bound search alone 90 s). ``scr
 runs this module after installing: it simulates a small campaign (three quarter-resolution
 scans of realistic stems, no prior; two unorganised PLY clouds without a sensor step, which take
 the projection path with its step estimate, and one organised npz range image) in a temporary
-folder and runs the whole pipeline on it with a temporary home, then a full-turn LAZ scan and two
-fine PLY clouds as other tools write them (:func:`full_turn_campaign`, :func:`fine_ply_campaign`),
-so every stage's kernels are compiled with the argument types a real run gives them. Nothing outside the temporary folder is
-written but the kernel cache and a stamp beside it: the fingerprint of the kernels' sources, so
-that the next set-up skips this step until a kernel changes.
+folder and runs the whole pipeline on it with a temporary home, then a full-turn LAZ scan and
+two fine PLY clouds as other tools write them (:func:`full_turn_campaign`,
+:func:`fine_ply_campaign`), so every stage's kernels are compiled with the argument types a real
+run gives them. Nothing outside the temporary folder is written but the kernel cache and a stamp
+beside it: the fingerprint of the kernels' sources, so that the next set-up skips this step
+until a kernel changes.
 
     python -m forestmap_assets.warm_kernels [--force | --check]   # about 2-3 min on 2 cores, once
 """

@@ -1,5 +1,6 @@
 """Numba kernels of :func:`~forestmap_assets.core.cloud.voxel_subsample` (spec 3.2) and
-:func:`~forestmap_assets.core.cloud.z_order`. The voxel subsample numbers the voxels, then makes
+:func:`~forestmap_assets.core.cloud.z_order`, and the radix sort they (and the observed
+surface's voxels, :mod:`~forestmap_assets.core.exploration.surface`) order their keys with. The voxel subsample numbers the voxels, then makes
 one pass over the points sorted voxel by voxel, with the arithmetic of the numpy formulation it
 replaced (``floor((p - origin) / voxel_m)``, centroid summed in input order, squared distance over
 ``voxel_m^2`` rounded to 9 decimals), so the representatives are the same (finite points). The
@@ -153,23 +154,21 @@ def morton_codes(p):
 
 
 @nb.njit(cache=True, nogil=True)
-def stable_argsort(keys, max_key):
-    """``np.argsort(keys, kind="stable")`` of non-negative int64 ``keys`` up to ``max_key``: an
-    LSD radix sort by 11-bit digits, the keys carried beside their indices (as many passes as
-    ``max_key`` has digits: 3 for the 5 cm voxels of a scan's 40 m box, where numpy's sort of
-    1.5 M composite keys took 60-90 ms); a digit all keys share is skipped."""
+def radix_sort(keys, bits, with_index):
+    """Non-negative int64 ``keys`` below ``2**bits`` sorted by an LSD radix sort of 11-bit
+    digits (every digit's histogram in one read; a digit all keys share is skipped), and with
+    ``with_index`` the stable order's indices carried beside them (else an empty array):
+    ``(sorted keys, indices)``. ``keys`` is used as a buffer."""
     n = keys.size
-    bits = 1
-    while bits < 63 and (np.int64(1) << bits) <= max_key:
-        bits += 1
-    n_digits = (bits + 10) // 11
+    n_digits = max((bits + 10) // 11, 1)
     count = np.zeros((n_digits, 2049), np.int64)
-    for i in range(n):  # the histograms of all digits in one read
+    for i in range(n):
         k = keys[i]
         for d in range(n_digits):
             count[d, ((k >> (11 * d)) & 2047) + 1] += 1
-    key, idx = keys.copy(), np.arange(n)
-    key2, idx2 = np.empty_like(key), np.empty_like(idx)
+    key, key2 = keys, np.empty_like(keys)
+    idx = np.arange(n) if with_index else np.empty(0, np.int64)
+    idx2 = np.empty_like(idx)
     for d in range(n_digits):
         offset = count[d]
         if offset.max() == n:  # one bucket holds every key: this digit leaves the order
@@ -181,8 +180,20 @@ def stable_argsort(keys, max_key):
             b = (key[i] >> shift) & 2047
             j = offset[b]
             key2[j] = key[i]
-            idx2[j] = idx[i]
+            if with_index:
+                idx2[j] = idx[i]
             offset[b] = j + 1
         key, key2 = key2, key
         idx, idx2 = idx2, idx
-    return idx
+    return key, idx
+
+
+@nb.njit(cache=True, nogil=True)
+def stable_argsort(keys, max_key):
+    """``np.argsort(keys, kind="stable")`` of non-negative int64 ``keys`` up to ``max_key`` by
+    :func:`radix_sort` (as many passes as ``max_key`` has 11-bit digits: 3 for the 5 cm voxels
+    of a scan's 40 m box, where numpy's sort of 1.5 M composite keys took 60-90 ms)."""
+    bits = 1
+    while bits < 63 and (np.int64(1) << bits) <= max_key:
+        bits += 1
+    return radix_sort(keys.copy(), bits, True)[1]

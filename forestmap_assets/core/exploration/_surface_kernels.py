@@ -187,29 +187,6 @@ def surface_walk(
 
 
 @nb.njit(cache=True)
-def radix_sort(keys, bits):
-    """Non-negative int64 ``keys`` below ``2**bits`` sorted (LSD radix, 11-bit digits; ``keys``
-    is used as a buffer)."""
-    n_digits = (bits + 10) // 11
-    count = np.zeros((n_digits, 2049), np.int64)
-    for i in range(keys.size):  # the histograms of all digits in one read
-        for d in range(n_digits):
-            count[d, ((keys[i] >> (11 * d)) & 2047) + 1] += 1
-    src = keys
-    dst = np.empty_like(src)
-    for d in range(n_digits):
-        offset = count[d]
-        for b in range(2048):
-            offset[b + 1] += offset[b]
-        for i in range(src.size):
-            b = (src[i] >> (11 * d)) & 2047
-            dst[offset[b]] = src[i]
-            offset[b] += 1
-        src, dst = dst, src
-    return src
-
-
-@nb.njit(cache=True)
 def voxel_counts(sorted_keys):
     """Distinct voxels of sorted :func:`_put` keys with their return and gap-fill counts."""
     n = sorted_keys.size

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from forestmap_assets.core._cloud_kernels import radix_sort
 from forestmap_assets.core.exploration import _surface_kernels as kernels
 from forestmap_assets.core.exploration.occlusion import (
     boundaries_table,
@@ -75,7 +76,7 @@ def observed_surface(
         raise ValueError(f"observed surface: {span.tolist()} voxels of {voxel_m} m is too large")
     keys = np.empty(n, dtype=np.int64)
     walk(lo, hi, span, keys)
-    uniq, n_points, n_filled = kernels.voxel_counts(kernels.radix_sort(keys, top.bit_length()))
+    uniq, n_points, n_filled = kernels.voxel_counts(radix_sort(keys, top.bit_length(), False)[0])
     iz = uniq % span[2] + lo[2]
     rest = uniq // span[2]
     iy = rest % span[1] + lo[1]

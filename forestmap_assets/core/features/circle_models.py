@@ -77,12 +77,13 @@ class _SegData:
 
     def __post_init__(self) -> None:
         # computed once for every phase: the coordinates as contiguous columns (the kernel's
-        # input) and each segment's centroid, whose dot with an axis is the mean height of the
-        # segment's points along it (5 phases of per-point heights: 0.15 s a scan of 0.7 M points)
+        # input), each segment's centroid, whose dot with an axis is the mean height of the
+        # segment's points along it (5 phases of per-point heights: 0.15 s a scan of 0.7 M
+        # points), and the segments' neighbour layout (only the rows within reach change)
         self.columns = tuple(np.ascontiguousarray(self.pts[:, i]) for i in range(3))
         own = np.diff(self.pptr)
         self.centroid = _reduce(self.pts, self.pptr) / np.maximum(own, 1)[:, None]
-        self.layout = None  # the segments' neighbour layout, made at the first phase
+        self.layout = segment_layout(self) if self.row.size else None
 
 
 def _circle_phase(
@@ -112,7 +113,6 @@ def _circle_phase(
     if not todo.any():
         return res
     e1, e2 = plane_frames(normals)
-    own = np.diff(sd.pptr)
     hbar = np.einsum("ij,ij->i", sd.centroid, normals)  # mean height of a segment's points
     # rows needed to cover +-collect_height along n (pruning only; the exact test is per point)
     tilt = np.arccos(np.clip(normals[:, 2], -1, 1))
@@ -120,8 +120,6 @@ def _circle_phase(
     need = (collect_height_m + sd.width * np.sin(tilt)) / (pitch_v * np.cos(tilt))
     k_rows = np.minimum(k_max, np.ceil(need) + 1).astype(np.int64)
     k_rows = np.where(todo, k_rows, -1)
-    if sd.layout is None:
-        sd.layout = segment_layout(sd)
     ps, pt = neighbour_pairs(sd, k_rows, layout=sd.layout)
     keep = todo[ps]
     ps, pt = ps[keep], pt[keep]
@@ -165,7 +163,7 @@ def _circle_phase(
         )
         return res
     # numpy engine: batches of circles bounded in gathered points (memory), in segment order
-    pair_n = own[pt]
+    pair_n = np.diff(sd.pptr)[pt]
     per_seg = np.bincount(ps, weights=pair_n, minlength=n_seg).astype(np.int64)
     csum = np.cumsum(per_seg[segs])
     cuts = np.searchsorted(
