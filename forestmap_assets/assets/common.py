@@ -208,8 +208,13 @@ VOLATILE_COLUMNS: frozenset[str] = frozenset({"seconds"})
 
 
 def data_version(obj: Any) -> DataVersion:
-    """Content hash of an asset output (table or bundle of tables), ``VOLATILE_COLUMNS`` left out."""
-    h = hashlib.sha256()
+    """Content hash of an asset output (table or bundle of tables), ``VOLATILE_COLUMNS`` left out:
+    XXH3 (128 bit), 20 GB/s here against SHA-256's 1.7 (a rendered scan's range image table,
+    60 MB: 35 -> 3 ms; issue 16). A version is compared with versions, never trusted as a
+    signature, so a fast non-cryptographic hash is enough."""
+    import xxhash
+
+    h = xxhash.xxh3_128()
 
     def feed(table: pd.DataFrame | pa.Table) -> None:
         if isinstance(table, pd.DataFrame):

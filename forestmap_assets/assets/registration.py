@@ -227,11 +227,13 @@ def registration_assets(campaign: Campaign) -> list:
         from forestmap_assets.core.features.range_image import table_azimuth_step
         from forestmap_assets.core.registration.two_way import RefineCloud
 
-        xyz, hue = _cloud(range_images)
+        colour = {"r", "g", "b"} <= set(range_images.column_names)  # the pair's method depends on it
         step_rad = table_azimuth_step(range_images)[0]
-        table = RefineCloud.from_points(xyz, refine_settings(campaign), step_rad).to_table(colour=hue is not None)
+        cloud = RefineCloud.from_columns(*(range_images.column(c).to_numpy() for c in "xyz"),
+                                         refine_settings(campaign), step_rad)
+        table = cloud.to_table(colour=colour)
         meta = {"data_points": int((table["role"] == "data").sum()),
-                "model_points": int((table["role"] == "model").sum()), "colour": hue is not None}
+                "model_points": int((table["role"] == "model").sum()), "colour": colour}
         return Output(table, metadata=meta, data_version=data_version(table))
 
     @asset(

@@ -49,6 +49,25 @@ def placed_points(x, y, z, pose):
 
 
 @nb.njit(cache=True, nogil=True)
+def cropped_points(x, y, z, max_range, z_lo, z_hi):
+    """Points (m, 3) float64 of the columns ``x, y, z`` within ``max_range`` of the sensor's
+    vertical axis and with ``z_lo <= z <= z_hi``, in input order, in one pass: the rows of the
+    float64 points that ``(sqrt(x^2 + y^2) <= max_range) & (z >= z_lo) & (z <= z_hi)`` keeps,
+    without a float64 copy of the whole cloud and its temporaries first (the same IEEE
+    arithmetic: no fused multiply-add without fastmath)."""
+    out = np.empty((x.shape[0], 3), np.float64)
+    m = 0
+    for i in range(x.shape[0]):
+        a, b, c = np.float64(x[i]), np.float64(y[i]), np.float64(z[i])
+        if math.sqrt(a * a + b * b) <= max_range and c >= z_lo and c <= z_hi:
+            out[m, 0] = a
+            out[m, 1] = b
+            out[m, 2] = c
+            m += 1
+    return out[:m]
+
+
+@nb.njit(cache=True, nogil=True)
 def finite_rows(p):
     """Indices of the rows of ``p`` (n, 3) whose three values are finite, in one pass."""
     out = np.empty(p.shape[0], np.int64)

@@ -166,3 +166,22 @@ def test_fit_guard_compares_with_the_branch_and_bound_fit(exact_scans):
     lenient = two_way_refine(clouds[a], clouds[b], start, dataclasses.replace(s, max_fit_loss=loss + 0.002))
     assert lenient["used"], lenient["reason"]
     assert np.hypot(*(res["pose"][:2] - pose[:2])) < 0.003  # and it moved back to the truth
+
+
+def test_cloud_from_stored_columns_is_the_cloud_of_the_points():
+    """A stored range image's float32 columns, cropped in one pass (``from_columns``), give the
+    same cloud as their float64 points through ``from_points``: points beyond the range, above
+    or below the band and not finite left out alike."""
+    rng = np.random.default_rng(2)
+    n = 60000
+    cols = [rng.uniform(-25, 25, n).astype(np.float32), rng.uniform(-25, 25, n).astype(np.float32),
+            rng.uniform(-12, 3, n).astype(np.float32)]
+    cols[0][:50] = np.nan
+    cols[2][50:100] = np.inf
+    cols[1][100] = 20.0  # on the range and band limits: kept by both
+    cols[0][100], cols[2][100] = 0.0, 1.5
+    s = RefineSettings()
+    got = RefineCloud.from_columns(*cols, s, 0.002).to_table()
+    want = RefineCloud.from_points(np.column_stack(cols).astype(np.float64), s, 0.002).to_table()
+    pd.testing.assert_frame_equal(got, want)
+    assert ((got[["x", "y", "z"]] == [0.0, 20.0, 1.5]).all(axis=1)).any()

@@ -114,8 +114,26 @@ class RefineCloud:
 
     @classmethod
     def from_points(cls, xyz: np.ndarray, s: RefineSettings, step_rad: float = float("nan")) -> RefineCloud:
+        """The cloud of a scan's levelled points ``xyz`` (n, 3): cropped (:func:`crop_mask`),
+        voxel-thinned to the model and data points, the model's normals (spec 3.2-3.3)."""
         p = np.asarray(xyz, dtype=np.float64)
-        p = p[crop_mask(p, s)]
+        return cls._from_cropped(p[crop_mask(p, s)], s, step_rad)
+
+    @classmethod
+    def from_columns(cls, x: np.ndarray, y: np.ndarray, z: np.ndarray, s: RefineSettings,
+                     step_rad: float = float("nan")) -> RefineCloud:
+        """:meth:`from_points` of the columns of a stored range image (float32), cropped in one
+        pass (:func:`~forestmap_assets.core._cloud_kernels.cropped_points`: the same points
+        without the float64 copy of the whole scan, 0.05 s of a 2.3 M-point scan, issue 16)."""
+        from forestmap_assets.core._cloud_kernels import cropped_points
+
+        lo, hi = s.z_band_m
+        p = cropped_points(np.ascontiguousarray(x), np.ascontiguousarray(y), np.ascontiguousarray(z),
+                           float(s.max_range_m), float(lo), float(hi))
+        return cls._from_cropped(p, s, step_rad)
+
+    @classmethod
+    def _from_cropped(cls, p: np.ndarray, s: RefineSettings, step_rad: float) -> RefineCloud:
         model = p[voxel_subsample(p, s.two_way_model_voxel_m)] if s.two_way_model_voxel_m and len(p) else p
         normals = sensor_normals(model, s.normal_k)
         # data voxels at least as coarse as the model's: thinned from the model, whose normals
