@@ -15,6 +15,7 @@ from forestmap_assets.core.mapping.stem_calipers import (
     outline_refs,
     silhouette_edges,
     tree_calipers,
+    tree_edges,
     width_function,
 )
 from forestmap_assets.core.mapping.tree_dbh import tree_dbh
@@ -417,3 +418,32 @@ def test_pixel_ranges_are_the_dense_images():
     shuffled = rng.permutation(len(row))
     np.testing.assert_array_equal(_pixel_ranges(row[shuffled], col[shuffled], image[row, col][shuffled], rows, cols),
                                   want)
+
+
+def test_edges_kept_for_the_stems_whose_radius_stayed_are_the_edges_found_again():
+    """Four poles, two of them 0.3 m apart (their gates overlap), seen by three scans: after
+    two stems' radii change, the edges of a call that keeps the others' (``reuse``, as the
+    tree list's passes about the anchors do) are the same table, row for row, as a fresh
+    call's; the stems asked for alone (``only``) give the rows they have among all."""
+    poles = [(6.0, 1.0, 0.15), (6.0, 1.45, 0.12), (-4.0, 5.0, 0.2), (2.0, -7.0, 0.1)]
+    sensors = [(0.0, 0.0), (10.0, 6.0), (-2.0, 9.0)]
+    tables = {f"S{i}": scan_table([(x - sx, y - sy, r) for x, y, r in poles])
+              for i, (sx, sy) in enumerate(sensors)}
+    poses = poses_table(*[(f"S{i}", sx, sy, 0.0, 0.0) for i, (sx, sy) in enumerate(sensors)])
+    stems = pd.DataFrame({"x": [p[0] for p in poles], "y": [p[1] for p in poles], "zbh": 0.0,
+                          "radius_m": [p[2] for p in poles], "slope_x": 0.0, "slope_y": 0.0})
+    tp = params()
+    reuse: dict = {}
+    first = tree_edges(tables, poses, stems, tp, reuse=reuse)
+    assert set(first["tree"]) == {0, 1, 2, 3}
+    moved = stems.assign(radius_m=stems["radius_m"] * [1.0, 1.6, 0.3, 1.0])  # the third: its gate cuts its edges
+    kept = tree_edges(tables, poses, moved, tp, reuse=reuse)
+    pd.testing.assert_frame_equal(kept, tree_edges(tables, poses, moved, tp))
+    assert not kept.equals(first)
+    only = np.array([False, True, True, False])
+    pose = np.array([*sensors[0], 0.0, 0.0])
+    kw = dict(half_height_m=tp.caliper_half_height_m, beam_exit_m=EXIT_M, beam_divergence_rad=DIV_RAD,
+              reach_m=tp.slice_gate_factor * moved["radius_m"].to_numpy() + tp.slice_gate_margin_m)
+    alone = silhouette_edges(tables["S0"], pose, moved, only=only, **kw)
+    among = silhouette_edges(tables["S0"], pose, moved, **kw)
+    pd.testing.assert_frame_equal(alone, among[only[among["tree"]]].reset_index(drop=True))

@@ -72,13 +72,15 @@ MAX_LOOK_PIXELS = 64
 def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, half_height_m: float,
                      reach_m: np.ndarray, beam_exit_m: float, beam_divergence_rad: float,
                      edge_step_m: float = 0.3, look_m: float = 0.3, min_pixels: int = 3,
-                     candidates: np.ndarray | None = None) -> pd.DataFrame:
+                     candidates: np.ndarray | None = None, only: np.ndarray | None = None) -> pd.DataFrame:
     """Silhouette edges (``EDGE_COLUMNS`` less ``scan``) of the ``stems`` (``x, y, zbh,
     slope_x, slope_y``, global frame) in one scan's range image ``tbl`` (``EDGE_COLUMNS_NEEDED``
     and the image's azimuths) placed with ``pose`` (x, y, z, heading_deg): per stem, scan line
     and side (+1: larger bearing) the tangent's distance ``h_m`` from the axis, for the edges
-    that pass step 1 of the module docstring. ``candidates``: the only rows of ``tbl`` that may
-    lie in a slice (:class:`~.stem_slices.StemCells`); None: all."""
+    that pass step 1 of the module docstring, ordered by side, stem and line. ``candidates``:
+    the only rows of ``tbl`` that may lie in a slice (:class:`~.stem_slices.StemCells`); None:
+    all. ``only`` (a mask over the stems): the edges of those stems alone, the same rows as
+    among all stems' (a point belongs to its nearest stem whatever the others' reach)."""
     empty = pd.DataFrame({c: pd.Series(dtype="float64") for c in EDGE_COLUMNS if c != "scan"})
     step, n_cols, col_dir = table_azimuth_step(tbl)
     if not len(stems) or tbl.num_rows == 0 or not np.isfinite(step) or step <= 0:
@@ -97,6 +99,9 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
     centre = stems[["x", "y"]].to_numpy(float)
     slope = stems[["slope_x", "slope_y"]].to_numpy(float)
     i, k, dz = slice_members(p, cKDTree(centre), zbh, slope, reach_m, half_height_m)
+    if only is not None:
+        asked = only[k]
+        i, k, dz = i[asked], k[asked], dz[asked]
     idx, p = idx[i], p[i]
     axis = centre[k] + slope[k] * dz[:, None]
     if not idx.size:
@@ -351,9 +356,12 @@ def edge_candidates(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: 
 
 
 def tree_edges(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.DataFrame, tp,
-               candidates: Mapping[str, np.ndarray] | None = None) -> pd.DataFrame:
+               candidates: Mapping[str, np.ndarray] | None = None, reuse: dict | None = None) -> pd.DataFrame:
     """:func:`silhouette_edges` (``EDGE_COLUMNS``) of ``stems`` in every placed scan's range
-    image in ``tables``; ``candidates``: :func:`edge_candidates` of gates at least as wide."""
+    image in ``tables``; ``candidates``: :func:`edge_candidates` of gates at least as wide.
+    ``reuse``: a dict the caller keeps between calls about the same stems, their radii alone
+    changing (:func:`~.tree_dbh.tree_dbh`'s passes): each scan's edges of the stems whose
+    radius stayed are kept, the others' found again (:func:`_respliced`; the same table)."""
     radius = np.nan_to_num(stems["radius_m"].to_numpy(float), nan=0.0)
     reach = tp.slice_gate_factor * radius + tp.slice_gate_margin_m
     half = tp.caliper_half_height_m
@@ -364,11 +372,31 @@ def tree_edges(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: pd.Da
         if sid not in candidates:
             continue
         pose = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
-        e = silhouette_edges(tbl, pose, stems, half_height_m=half, reach_m=reach, candidates=candidates[sid],
-                             beam_exit_m=tp.beam_exit_m, beam_divergence_rad=1e-3 * tp.beam_divergence_mrad,
-                             edge_step_m=tp.caliper_edge_step_m)
+        kw = dict(half_height_m=half, reach_m=reach, candidates=candidates[sid], beam_exit_m=tp.beam_exit_m,
+                  beam_divergence_rad=1e-3 * tp.beam_divergence_mrad, edge_step_m=tp.caliper_edge_step_m)
+        before, e = (reuse or {}).get(sid), None
+        if before is not None:
+            moved = radius != before[0]
+            e = before[1] if not moved.any() else _respliced(
+                before[1], moved, silhouette_edges(tbl, pose, stems, only=moved, **kw))
+        if e is None:
+            e = silhouette_edges(tbl, pose, stems, **kw)
+        if reuse is not None:
+            reuse[sid] = (radius, e)
         parts.append(e.assign(scan=sid))
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=EDGE_COLUMNS)
+
+
+def _respliced(before: pd.DataFrame, moved: np.ndarray, fresh: pd.DataFrame) -> pd.DataFrame | None:
+    """One scan's edges after only the stems ``moved`` changed radius: ``before``'s rows of the
+    others and ``fresh`` (the moved stems' own), in :func:`silhouette_edges`' order (side, stem,
+    line: one edge each). None where neither has a row (an empty table's column types differ:
+    the caller finds them all)."""
+    kept = before[~moved[before["tree"].to_numpy(int)]] if len(before) else before
+    if not len(kept) or not len(fresh):
+        return fresh if len(fresh) else kept.reset_index(drop=True) if len(kept) else None
+    both = pd.concat([kept, fresh], ignore_index=True)
+    return both.sort_values(["side", "tree", "row"], kind="stable", ignore_index=True)
 
 
 def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, noise_ref_m: float) -> tuple[pd.DataFrame, float]:
@@ -403,7 +431,8 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
               clouds: Mapping[str, np.ndarray], poses: pd.DataFrame, tp,
               images: Mapping[str, pa.Table] | None = None, breast_height_m: float = 1.3,
               splats: Mapping[str, tuple[float, float]] | None = None,
-              candidates: Mapping[str, np.ndarray] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+              candidates: Mapping[str, np.ndarray] | None = None,
+              reuse: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The trees' DBH from the merged slices (:func:`~.stem_slices.merged_slice_dbh`, same
     arguments) gathered about ``stems`` (:func:`~.stem_slices.slice_stems`, their ``radius_m``
     the gates' anchors: :func:`~.tree_dbh.tree_dbh`), blended with the silhouettes' widths
@@ -417,7 +446,7 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
     back (:func:`~.slice_splats.splat_steps`); with any, the campaign widening beyond the slice
     trees' range tapers off instead of following the cylinders, whose arcs kept the splats
     (:mod:`.slice_splats`). ``candidates``: the images' rows :func:`tree_edges` may look at
-    (:func:`edge_candidates`), if the caller has them."""
+    (:func:`edge_candidates`), if the caller has them; ``reuse``: :func:`tree_edges`'."""
     with_outline = bool(tp.calipers and images and tp.outline_ref_sd_m > 0)
     slices, sensors = slice_points(clouds, poses, stems, tp, gather_half_height(tp) if with_outline else None, splats)
     out, fits = merged_slice_dbh(trees, cyl, tree_of_cyl, clouds, poses, tp, breast_height_m, stems=stems,
@@ -426,7 +455,7 @@ def dbh_about(stems: pd.DataFrame, trees: pd.DataFrame, cyl: pd.DataFrame, tree_
     fits["caliper_lone_sides"] = False
     if not (tp.calipers and images):
         return out, fits
-    edges = splat_edges_back(tree_edges(images, poses, stems, tp, candidates), splats)
+    edges = splat_edges_back(tree_edges(images, poses, stems, tp, candidates, reuse), splats)
     calipers = tree_calipers(images, poses, stems, tp, edges=edges)
     widening = Widening()
     if tp.caliper_widening == "campaign" and len(edges):

@@ -76,8 +76,11 @@ def _anchored(trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_
     rows = (edge_candidates(images, poses, stems.assign(radius_m=widest_anchor(tp) * start), tp)
             if tp.calipers and images else None)
 
+    edges: dict = {}  # each scan's silhouette edges, kept for the stems a pass leaves alone
+
     def about(stems):
-        return dbh_about(stems, trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats, rows)
+        return dbh_about(stems, trees, cyl, tree_of_cyl, clouds, poses, tp, images, breast_height_m, splats, rows,
+                         edges)
 
     if anchors is not None:
         stems = stems.assign(radius_m=np.where(start > 0, anchors, start))
