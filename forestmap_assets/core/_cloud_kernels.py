@@ -1,11 +1,12 @@
 """Numba kernels of :func:`~forestmap_assets.core.cloud.voxel_subsample` (spec 3.2) and
-:func:`~forestmap_assets.core.cloud.z_order`, and the radix sort they (and the observed
-surface's voxels, :mod:`~forestmap_assets.core.exploration.surface`) order their keys with. The voxel subsample numbers the voxels, then makes
-one pass over the points sorted voxel by voxel, with the arithmetic of the numpy formulation it
-replaced (``floor((p - origin) / voxel_m)``, centroid summed in input order, squared distance over
-``voxel_m^2`` rounded to 9 decimals), so the representatives are the same (finite points). The
-subsample's kernels release the GIL, so that the scans of the registered cloud are thinned in
-threads (:mod:`forestmap_assets.core.mapping.point_cloud`)."""
+:func:`~forestmap_assets.core.cloud.z_order`, the radix sort they (and the observed surface's
+voxels, :mod:`~forestmap_assets.core.exploration.surface`) order their keys with, and the
+cloud's crop and placement from a stored range image's columns. The voxel subsample numbers
+the voxels, then makes one pass over the points sorted voxel by voxel, with the arithmetic of
+the numpy formulation it replaced (``floor((p - origin) / voxel_m)``, centroid summed in input
+order, squared distance over ``voxel_m^2`` rounded to 9 decimals), so the representatives are
+the same (finite points). The subsample's kernels release the GIL, so that the scans of the
+registered cloud are thinned in threads (:mod:`forestmap_assets.core.mapping.point_cloud`)."""
 
 from __future__ import annotations
 

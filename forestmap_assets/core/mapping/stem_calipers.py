@@ -393,10 +393,12 @@ def _respliced(before: pd.DataFrame, moved: np.ndarray, fresh: pd.DataFrame) -> 
     line: one edge each). None where neither has a row (an empty table's column types differ:
     the caller finds them all)."""
     kept = before[~moved[before["tree"].to_numpy(int)]] if len(before) else before
-    if not len(kept) or not len(fresh):
-        return fresh if len(fresh) else kept.reset_index(drop=True) if len(kept) else None
-    both = pd.concat([kept, fresh], ignore_index=True)
-    return both.sort_values(["side", "tree", "row"], kind="stable", ignore_index=True)
+    if len(kept) and len(fresh):
+        both = pd.concat([kept, fresh], ignore_index=True)
+        return both.sort_values(["side", "tree", "row"], kind="stable", ignore_index=True)
+    if len(fresh):
+        return fresh
+    return kept.reset_index(drop=True) if len(kept) else None
 
 
 def blend_calipers(trees: pd.DataFrame, calipers: pd.DataFrame, noise_m: float, noise_ref_m: float) -> tuple[pd.DataFrame, float]:
