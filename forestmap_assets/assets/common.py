@@ -36,7 +36,7 @@ CODE_VERSIONS: dict[str, str] = {
     "refine_clouds": "4",
     "candidate_pairs": "2",
     "pairwise_registrations": "4",
-    "refined_registrations": "7",
+    "refined_registrations": "8",
     "retry_pairs": "1",
     "optimal_map": "7",
     "residual_checks": "1",

@@ -120,8 +120,14 @@ class RefineSettings:
     # campaign 0.0124 / 0.0345 / 0.0130 deg, own full resolution 0.017 / 0.024 / 0.011, Sylva 1-5
     # 0.008 / 0.011 / 0.009, rendered 0.006 / 0.004 / 0.004 (benchmarks/results.md "refine_time")
     heading_from: Literal["both", "refined"] = "both"
-    # ... when the two agree within this many sigmas of their difference; else the refined one
-    # (a branch-and-bound heading off by more than its sigma says is what the refinement is for)
+    # ... when the two agree within this many sigmas of their difference. Beyond them the
+    # refined pose is kept only when it also fits better than the branch and bound's (a coarse
+    # heading off by more than its sigma says is what the refinement is for, issue 19); else the
+    # refinement is not used (before: always kept). Of 284 refined links on held-out Sylva, own
+    # realistic and rendered surveys (sessions 41-45), 6 disagreed beyond 3 sigmas, all on
+    # Sylva's clouds, and in all 6 the branch-and-bound heading was the closer (0.0002-0.0026
+    # deg off against 0.033-0.153 deg); 5 of them fitted 0.6-1.4 % worse refined. Sylva 168's
+    # scan s4 was placed 1.6 cm / 0.15 deg off by two of them (benchmarks/results.md, session 45)
     heading_agree_sigmas: float = 3.0
     # splat radii (m) a refined pair tries taking back (core/registration/splat_widening.py): scans
     # rendered inside a registered cloud have every surface widened by their splats; the one that

@@ -81,4 +81,4 @@ def test_refined_registrations_asset_uses_hicp_on_colour_scans(tmp_path, _isolat
     assert 0 < acc["sd_x"] < 0.02  # its own, smaller uncertainty
     meta = res.asset_materializations_for_node(key.to_python_identifier())[0].metadata
     assert meta["used"].value == "refined" and meta["method"].value == "hicp"
-    assert code_version(campaign, "refined_registrations").startswith("v7-")
+    assert code_version(campaign, "refined_registrations").startswith("v8-")

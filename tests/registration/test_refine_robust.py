@@ -99,3 +99,40 @@ def test_fused_heading_is_the_weighted_mean_and_keeps_the_overlap_in_place():
     assert np.array_equal(same, refined) and np.array_equal(sd_same, sd)
     nan_sd = fuse_heading(refined, sd, bnb, np.full(4, np.nan), centre, 3.0)[0]
     assert np.array_equal(nan_sd, refined)
+
+
+def test_refinement_whose_heading_disagrees_with_the_branch_and_bound_is_not_used(monkeypatch):
+    """refine.refine_pair_two_way: a used two-way refinement whose heading lies more than
+    ``heading_agree_sigmas`` sigmas from the branch-and-bound one, and which fits no better,
+    falls back to the branch and bound (Sylva 168's links of scan s4 were 0.14-0.15 deg off so);
+    with a better fit it stands as refined; within the sigmas the headings are fused."""
+    import forestmap_assets.core.registration.refine as refine
+    from forestmap_assets.core.registration.two_way import heading_gap_sigmas
+    from forestmap_assets.params.men import RefineSettings
+
+    bnb = np.array([15.862, 0.042, 2.630, -29.4337])
+    sd_bnb = np.array([0.0045, 0.0077, 0.0033, 0.0019])
+    sd_ref = np.array([0.0039, 0.0030, 0.0020, 0.0300])
+
+    def fake(heading, fit=0.0142):
+        def two_way_refine(scan, ref, pose, settings, spread=True):
+            return {"pose": np.array([15.8646, 0.0277, 2.6320, heading]), "sd": sd_ref.copy(), "used": True,
+                    "reason": "", "fit_bnb_m": 0.0140, "fit_refined_m": fit, "pairs_bnb": 1243,
+                    "pairs_refined": 1283, "iterations": 29, "disagree": np.zeros(4), "n_data": 20000,
+                    "n_model": 170000, "centre": np.array([3.0, 1.0, 0.5]), "spread_along": 0.0}
+        return two_way_refine
+
+    monkeypatch.setattr(refine, "with_objective_spread", lambda res, *a, **k: res)
+    settings = RefineSettings()
+    monkeypatch.setattr(refine, "two_way_refine", fake(-29.5861))  # 0.152 deg: 5.1 sigmas
+    assert np.isclose(heading_gap_sigmas([0, 0, 0, -29.5861], sd_ref, bnb, sd_bnb), 0.1524 / np.hypot(0.03, 0.0019))
+    row = refine.refine_pair_two_way(None, None, bnb, sd_bnb, settings)
+    assert row["used"] == "branch_and_bound" and "5.1 sigma" in row["reason"] and "0.152 deg" in row["reason"]
+    monkeypatch.setattr(refine, "two_way_refine", fake(-29.5861, fit=0.0138))  # the same, fitting better
+    row = refine.refine_pair_two_way(None, None, bnb, sd_bnb, settings)
+    assert row["used"] == "refined" and row["ref_dheading_deg"] == -29.5861
+    monkeypatch.setattr(refine, "two_way_refine", fake(-29.4537))  # 0.02 deg: 0.7 sigmas
+    row = refine.refine_pair_two_way(None, None, bnb, sd_bnb, settings)
+    assert row["used"] == "refined" and row["reason"] == ""
+    assert abs(row["ref_dheading_deg"] - bnb[3]) < 0.001  # fused: the branch and bound's sigma is the smaller
+    assert np.isnan(heading_gap_sigmas(bnb, np.full(4, np.nan), bnb, sd_bnb))

@@ -81,6 +81,7 @@ from forestmap_assets.core.registration.two_way import (
     RefineCloud,
     crop_mask,
     fuse_heading,
+    heading_gap_sigmas,
     two_way_refine,
     with_objective_spread,
 )
@@ -279,8 +280,14 @@ def refine_pair_two_way(scan: RefineCloud, ref: RefineCloud, pose, sd, settings:
     else:
         res = with_objective_spread(res, scan, ref, settings)
     if res["used"] and settings.heading_from == "both":
-        res["pose"], res["sd"] = fuse_heading(res["pose"], res["sd"], pose, np.asarray(sd, dtype=np.float64),
-                                              res["centre"], settings.heading_agree_sigmas)
+        gap = heading_gap_sigmas(res["pose"], res["sd"], pose, sd)
+        if gap > settings.heading_agree_sigmas and not res["fit_refined_m"] < res["fit_bnb_m"]:
+            res["used"] = False  # the branch and bound's pose stands (RefineSettings.heading_agree_sigmas)
+            res["reason"] = (f"refined heading {abs(wrap_deg(res['pose'][3] - pose[3])):.3f} deg ({gap:.1f} sigma) "
+                             "from the branch and bound's, and no better fit")
+        else:
+            res["pose"], res["sd"] = fuse_heading(res["pose"], res["sd"], pose, np.asarray(sd, dtype=np.float64),
+                                                  res["centre"], settings.heading_agree_sigmas)
     new, dis = res["pose"], res["disagree"]
     row.update({f"ref_{k}": v for k, v in zip(POSE, new, strict=True)})
     row.update({f"ref_{k}": v for k, v in zip(SD, res["sd"], strict=True)})

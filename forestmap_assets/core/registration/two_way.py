@@ -322,6 +322,15 @@ def objective_spread(scan: RefineCloud, ref: RefineCloud, pose, s: RefineSetting
     return -float(np.dot(alt.pose[:2] - np.asarray(pose[:2], dtype=np.float64), u))
 
 
+def heading_gap_sigmas(refined, sd_refined, bnb, sd_bnb) -> float:
+    """How many sigmas of their difference the refined and the branch-and-bound headings lie
+    apart (NaN where a sigma is missing or not positive)."""
+    sr, sb = float(np.asarray(sd_refined, dtype=np.float64)[3]), float(np.asarray(sd_bnb, dtype=np.float64)[3])
+    if not (np.isfinite(sr) and np.isfinite(sb) and sr > 0 and sb > 0):
+        return float("nan")
+    return abs(wrap_deg(float(bnb[3]) - float(refined[3]))) / float(np.hypot(sr, sb))
+
+
 def fuse_heading(refined, sd_refined, bnb, sd_bnb, centre,
                  agree_sigmas: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
     """The refined pose with the inverse-variance mean of its heading and the branch-and-bound
@@ -330,8 +339,8 @@ def fuse_heading(refined, sd_refined, bnb, sd_bnb, centre,
     translation follows so that ``centre`` (the paired data points' mean, the scan's frame) stays
     where the refinement put it: the overlap fixes where those points are, not the lever arm to
     the sensor. Unchanged where a sigma is missing or the headings differ by more than
-    ``agree_sigmas`` sigmas of their difference (the branch-and-bound sigma is smallest exactly
-    where stem shapes bias it, issue 19)."""
+    ``agree_sigmas`` sigmas of their difference (:func:`heading_gap_sigmas`; the refinement is
+    then not used at all, :func:`~.refine.refine_pair_two_way`)."""
     refined = np.asarray(refined, dtype=np.float64).copy()
     sd = np.asarray(sd_refined, dtype=np.float64).copy()
     sr, sb = sd[3], float(sd_bnb[3])
