@@ -60,15 +60,19 @@ def refine_settings(campaign: Campaign):
     return RefineSettings(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in values.items()})
 
 
+def _has_colour(table) -> bool:
+    """Whether a stored ``range_images`` table has the points' colour (``r, g, b``)."""
+    return {"r", "g", "b"} <= set(table.column_names)
+
+
 def _cloud(table) -> tuple[np.ndarray, np.ndarray | None]:
     """Levelled points and hue (None without colour) of a stored ``range_images`` table."""
     from forestmap_assets.core.features.range_image import table_points
     from forestmap_assets.core.registration.colour import rgb_to_hue
 
-    names = set(table.column_names)
     xyz = table_points(table)
     hue = None
-    if {"r", "g", "b"} <= names:
+    if _has_colour(table):
         rgb = np.column_stack([table.column(c).to_numpy() for c in "rgb"]).astype(np.uint8)
         hue = rgb_to_hue(rgb)  # computed once per scan, carried unchanged through the ICP
     return xyz, hue
@@ -227,7 +231,7 @@ def registration_assets(campaign: Campaign) -> list:
         from forestmap_assets.core.features.range_image import table_azimuth_step
         from forestmap_assets.core.registration.two_way import RefineCloud
 
-        colour = {"r", "g", "b"} <= set(range_images.column_names)  # the pair's method depends on it
+        colour = _has_colour(range_images)  # the pair's method depends on it
         step_rad = table_azimuth_step(range_images)[0]
         cloud = RefineCloud.from_columns(*(range_images.column(c).to_numpy() for c in "xyz"),
                                          refine_settings(campaign), step_rad)

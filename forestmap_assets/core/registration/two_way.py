@@ -343,12 +343,10 @@ def fuse_heading(refined, sd_refined, bnb, sd_bnb, centre,
     then not used at all, :func:`~.refine.refine_pair_two_way`)."""
     refined = np.asarray(refined, dtype=np.float64).copy()
     sd = np.asarray(sd_refined, dtype=np.float64).copy()
+    if not (heading_gap_sigmas(refined, sd, bnb, sd_bnb) <= agree_sigmas and np.all(np.isfinite(centre))):
+        return refined, sd
     sr, sb = sd[3], float(sd_bnb[3])
-    if not (np.isfinite(sr) and np.isfinite(sb) and sr > 0 and sb > 0 and np.all(np.isfinite(centre))):
-        return refined, sd
     gap = wrap_deg(float(bnb[3]) - refined[3])
-    if abs(gap) > agree_sigmas * np.hypot(sr, sb):
-        return refined, sd
     heading = refined[3] + sr**2 / (sr**2 + sb**2) * gap
     r0, t0 = pose4_to_matrix(refined)
     r1, _ = pose4_to_matrix(np.r_[refined[:3], heading])
