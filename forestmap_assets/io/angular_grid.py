@@ -33,15 +33,22 @@ def _xyz(xyz) -> np.ndarray:
     return np.asarray(xyz, dtype=np.float64)
 
 
-def spherical_angles(xyz: np.ndarray, y=None, z=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Range, azimuth ``atan2(y, x)``, elevation ``atan2(z, hypot(x, y))`` (deg) of (n, 3) or x, y, z."""
+def spherical_angles(xyz: np.ndarray, y=None, z=None, *, overwrite: bool = False
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range, azimuth ``atan2(y, x)``, elevation ``atan2(z, hypot(x, y))`` (deg) of (n, 3) or x, y, z.
+    ``overwrite``: an (n, 3) float64 array stored column by column (Fortran order) may be used
+    up: its x and y columns become the azimuth and elevation (no copy of the points)."""
     if y is None:
         xyz = np.asarray(xyz, dtype=np.float64)
         # the values of the code below in fewer passes: both hypots in one (on every core),
-        # arctan2 on contiguous copies (3 times faster, same values), in place
-        x, y, z, h, r = (np.empty(xyz.shape[0]) for _ in range(5))
-        for i, c in enumerate((x, y, z)):
-            c[:] = xyz[:, i]
+        # arctan2 on contiguous columns (3 times faster, same values), in place
+        if overwrite and xyz.ndim == 2 and xyz.flags.f_contiguous:
+            x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            h, r = np.empty(xyz.shape[0]), np.empty(xyz.shape[0])
+        else:
+            x, y, z, h, r = (np.empty(xyz.shape[0]) for _ in range(5))
+            for i, c in enumerate((x, y, z)):
+                c[:] = xyz[:, i]
         hypots(x, y, z, h, r)
         az = np.degrees(np.arctan2(y, x, out=x), out=x)
         return r, az, np.degrees(np.arctan2(z, h, out=y), out=y)

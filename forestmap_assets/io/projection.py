@@ -379,12 +379,14 @@ def project_to_range_image(
     min_step_deg: float = 0.0,
     min_fill: float = _DEFAULTS.min_fill,
     max_pixels: int = 100_000_000,
+    overwrite: bool = False,
 ) -> RangeImage:
     """Organised range image (spec 1.2) from an unorganised scanner-frame cloud: the points'
     :func:`spherical_angles` projected by :func:`project_angles` (same keywords); points at
-    the origin or not finite are dropped."""
+    the origin or not finite are dropped. ``overwrite``: ``xyz`` may be used up
+    (:func:`spherical_angles`)."""
     with np.errstate(invalid="ignore"):
-        r, az, el = spherical_angles(_xyz(xyz))
+        r, az, el = spherical_angles(_xyz(xyz), overwrite=overwrite)
     return project_angles(r, az, el, rgb, intensity, angular_step_deg=angular_step_deg,
                           min_step_deg=min_step_deg, min_fill=min_fill, max_pixels=max_pixels,
                           overwrite=True)

@@ -305,9 +305,12 @@ def _binary_ply_vertices(path: Path, header: tuple[str, list[list], int] | None 
 
 def _ply_columns(v: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Points (float64), colour (uint8 RGB or None) and intensity (float32 or None) of PLY vertex
-    rows, as Open3D's reader names them (``red, green, blue``; ``intensity``)."""
+    rows, as Open3D's reader names them (``red, green, blue``; ``intensity``). The points are
+    stored column by column, as the projection reads them (:func:`~forestmap_assets.io.
+    angular_grid.spherical_angles` then needs no copy: 15-20 ms and 56 MB less on a 2.3 M-point
+    scan, issue 16)."""
     names = set(v.dtype.names)
-    xyz = np.empty((len(v), 3))
+    xyz = np.empty((len(v), 3), order="F")
     for i, c in enumerate("xyz"):
         xyz[:, i] = v[c]
     rgb = intensity = None
@@ -404,7 +407,7 @@ def read_open3d(path: Path, angular_step_deg, to_scanner=None) -> RangeImage:
         if (rows := _binary_ply_vertices(path, header)) is not None:
             xyz, rgb, intensity = _ply_columns(rows)
             del rows  # unmaps the file
-            return _project(xyz, rgb, intensity, angular_step_deg, to_scanner)
+            return _project(xyz, rgb, intensity, angular_step_deg, to_scanner, own=True)
     else:
         n = _check_pcd(path)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):

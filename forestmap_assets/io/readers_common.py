@@ -116,10 +116,12 @@ def _project(
     intensity: np.ndarray | None,
     angular_step_deg,
     to_scanner=None,
+    own: bool = False,
 ) -> RangeImage:
     """Spherical projection of a cloud about its scanner; ``to_scanner`` (4x4) first moves points
     of a project-frame file into the scanner's frame, in float64 (map coordinates keep their mm).
-    ``angular_step_deg``: a step, None, or :class:`ProjectionSettings`."""
+    ``angular_step_deg``: a step, None, or :class:`ProjectionSettings`. ``own``: ``xyz`` is the
+    caller's to give up (the projection may overwrite it, :func:`spherical_angles`)."""
     xyz = np.asarray(xyz, dtype=np.float64)
     if to_scanner is not None:
         m = np.asarray(to_scanner, dtype=np.float64)
@@ -132,7 +134,7 @@ def _project(
         raise BadScan("no finite points")
     settings = ProjectionSettings.of(angular_step_deg)
     try:
-        image = project_to_range_image(xyz, rgb, intensity, **settings.kwargs())
+        image = project_to_range_image(xyz, rgb, intensity, **settings.kwargs(), overwrite=own)
     except ValueError as exc:
         raise BadScan(f"spherical projection failed: {one_line(exc)}") from exc
     return _bridged(image, int(good.sum()), settings)

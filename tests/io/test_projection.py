@@ -62,6 +62,24 @@ def test_spherical_angles_convention():
     np.testing.assert_allclose(el, [0.0, 45.0, 0.0], atol=1e-9)
 
 
+def test_spherical_angles_may_use_up_a_column_ordered_cloud():
+    """``overwrite`` on a column-ordered (n, 3) float64 cloud (how the PLY reader stores it):
+    the same values with no copy of the points, the x and y columns holding azimuth and
+    elevation afterwards; a row-ordered cloud is left alone (issue 16)."""
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(0.0, 10.0, (5000, 3))
+    xyz[7] = np.nan
+    want = spherical_angles(xyz.copy())
+    cols = np.asfortranarray(xyz)
+    got = spherical_angles(cols, overwrite=True)
+    for a, b in zip(want, got, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert np.shares_memory(got[1], cols) and np.shares_memory(got[2], cols)
+    rows = xyz.copy()
+    spherical_angles(rows, overwrite=True)
+    np.testing.assert_array_equal(rows, xyz)
+
+
 @pytest.mark.parametrize(
     "rows, cols, az_step, el_step, az0, el0",
     [
