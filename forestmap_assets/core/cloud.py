@@ -35,24 +35,21 @@ def voxel_subsample(points: np.ndarray, voxel_m: float, origin=None) -> np.ndarr
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) == 0:
         return np.zeros(0, dtype=np.int64)
-    from forestmap_assets.core._cloud_kernels import bounds, voxel_numbers, voxel_representatives
+    from forestmap_assets.core._cloud_kernels import (
+        bounds,
+        stable_sort,
+        voxel_numbers,
+        voxel_representatives,
+    )
 
     o = bounds(p)[0] if origin is None else np.asarray(origin, dtype=np.float64)  # as voxel_keys
     flat = voxel_numbers(p, float(voxel_m), o)
-    order = _stable_order(flat)  # voxel by voxel, each in input order
+    # voxel by voxel, each in input order (``np.argsort(flat, kind="stable")``), and the voxel
+    # numbers in that order: one radix sort in flat's own buffer (stable_sort)
+    keys, order = stable_sort(flat, int(flat.max()))
     kept = np.zeros(len(p), dtype=bool)
-    kept[voxel_representatives(p, order, flat[order], float(voxel_m), o)] = True
+    kept[voxel_representatives(p, order, keys, float(voxel_m), o)] = True
     return np.flatnonzero(kept)
-
-
-def _stable_order(flat: np.ndarray) -> np.ndarray:
-    """``np.argsort(flat, kind="stable")`` for non-negative int64 keys, by the radix sort of
-    :func:`~forestmap_assets.core._cloud_kernels.stable_argsort` (the same order)."""
-    from forestmap_assets.core._cloud_kernels import stable_argsort
-
-    if len(flat) == 0:
-        return np.zeros(0, dtype=np.int64)
-    return stable_argsort(np.ascontiguousarray(flat, dtype=np.int64), int(flat.max()))
 
 
 def z_order(points: np.ndarray) -> np.ndarray:

@@ -124,7 +124,7 @@ def test_voxel_subsample_two_point_voxels_favour_no_direction():
 def test_radix_argsort_is_numpys_stable_argsort():
     """The voxel subsample's and the Z-order's radix sort gives ``np.argsort(kind="stable")``:
     ties in input order, digits every key shares skipped, 63-bit keys, no keys."""
-    from forestmap_assets.core._cloud_kernels import stable_argsort
+    from forestmap_assets.core._cloud_kernels import stable_argsort, stable_sort
 
     rng = np.random.default_rng(5)
     for keys in (
@@ -136,4 +136,8 @@ def test_radix_argsort_is_numpys_stable_argsort():
     ):
         keys = keys.astype(np.int64)
         top = int(keys.max()) if len(keys) else 0
-        assert np.array_equal(stable_argsort(keys, top), np.argsort(keys, kind="stable"))
+        want = np.argsort(keys, kind="stable")
+        assert np.array_equal(stable_argsort(keys, top), want)
+        # the sort in the keys' own buffer (voxel_subsample): the sorted keys beside the order
+        got_keys, got = stable_sort(keys.copy(), top)
+        assert np.array_equal(got, want) and np.array_equal(got_keys, keys[want])
