@@ -55,10 +55,10 @@ def voxel_subsample(points: np.ndarray, voxel_m: float, origin=None) -> np.ndarr
 def z_order(points: np.ndarray) -> np.ndarray:
     """Indices ordering ``points`` along a Morton (Z-order) curve of their bounding box (2^21
     cells per axis): neighbours in space become neighbours in the order."""
-    from forestmap_assets.core._cloud_kernels import morton_codes, stable_argsort
+    from forestmap_assets.core._cloud_kernels import morton_codes, stable_sort
 
-    codes = morton_codes(np.asarray(points, dtype=np.float64).reshape(-1, 3))
-    return stable_argsort(codes, int(codes.max())) if len(codes) else np.zeros(0, dtype=np.int64)
+    codes = morton_codes(np.asarray(points, dtype=np.float64).reshape(-1, 3))  # a fresh array: sorted in place
+    return stable_sort(codes, int(codes.max()))[1] if len(codes) else np.zeros(0, dtype=np.int64)
 
 
 def radius_outlier_mask(points: np.ndarray, radius_m: float, min_neighbours: int,
