@@ -465,6 +465,20 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
 
+def _remove_multiprocessing_tempdir() -> None:
+    """The ``pymp-*`` folder multiprocessing made in the temporary directory for the fork
+    server's socket: its own clean-up runs at the interpreter's exit, which ``os._exit`` skips,
+    so every run left one behind. The fork server stops by itself when this process ends."""
+    if "multiprocessing" not in sys.modules:
+        return
+    import multiprocessing.process
+    import shutil
+
+    tempdir = multiprocessing.process.current_process()._config.get("tempdir")
+    if tempdir:
+        shutil.rmtree(tempdir, ignore_errors=True)
+
+
 def _leave(code: int) -> None:
     """Exit at once with ``code`` once the output is flushed: every file a command writes is
     complete by then (written atomically), the worker pools are shut down, and the interpreter's
@@ -472,6 +486,7 @@ def _leave(code: int) -> None:
     logging.shutdown()
     if (event_log := sys.modules.get("forestmap_assets.orchestration.event_log")) is not None:
         event_log.close_all()  # no -wal / -shm files left beside the run history
+    _remove_multiprocessing_tempdir()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()

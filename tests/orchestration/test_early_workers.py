@@ -93,3 +93,23 @@ def test_worker_libraries_leave_out_open3ds_plotly_viewer():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["[]", "True"]
+
+
+def test_leaving_removes_the_fork_servers_socket_folder(tmp_path):
+    """`_leave` ends the process with ``os._exit``, which skips multiprocessing's own clean-up
+    of its ``pymp-*`` folder: every run left one in the temporary directory."""
+    import subprocess
+    import sys
+
+    code = (
+        "import multiprocessing.util as u\n"
+        "from forestmap_assets.orchestration import forkserver\n"
+        "from forestmap_assets import cli\n"
+        "forkserver.start()\n"
+        f"assert u.get_temp_dir().startswith({str(tmp_path)!r})\n"
+        "cli._leave(0)\n"
+    )
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert not list(tmp_path.glob("pymp-*"))
