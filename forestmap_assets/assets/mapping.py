@@ -23,13 +23,14 @@ from forestmap_assets.assets.common import (
     code_version,
     data_version,
     md_table,
+    picture_metadata,
     png_metadata,
     screened,
     timed,
 )
 from forestmap_assets.assets.pairs import combine_pairs
 from forestmap_assets.io.campaign import Campaign
-from forestmap_assets.outputs.figures.elevation import elevation_figure
+from forestmap_assets.outputs.figures.elevation_pictures import elevation_picture
 from forestmap_assets.outputs.figures.mapping import dbh_histogram, network_figure
 
 POSE_COLUMNS = ["scan", "x", "y", "z", "heading_deg", "sd_x", "sd_y", "sd_z", "sd_heading_deg", "registered"]
@@ -255,7 +256,7 @@ def mapping_assets(campaign: Campaign) -> list:
         bundle = {"cylinders": cylinders, "elevation": elevation, "scans": placed.reset_index(drop=True)}
         meta = {"cylinders": len(cylinders), "elevation_cells": len(elevation), "scans": len(placed)}
         if grid is not None:
-            meta["elevation_map"] = png_metadata(elevation_figure(grid, placed, crop=False, title=f"{campaign.name}: merged elevation map"))
+            meta["elevation_map"] = picture_metadata(elevation_picture(grid, placed, f"{campaign.name}: merged elevation map"))
         return Output(bundle, metadata=meta, data_version=data_version(bundle))
 
     tp = params.trees

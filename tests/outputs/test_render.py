@@ -250,6 +250,31 @@ def test_elevation_figure_labels_its_colour_scale_and_crops_to_the_plot():
     assert png_bytes(fig)[:4] == b"\x89PNG"
 
 
+def test_elevation_picture_for_the_dagster_ui():
+    import io
+
+    from PIL import Image
+
+    from forestmap_assets.outputs.figures.common import NO_VALUE
+    from forestmap_assets.outputs.figures.elevation_pictures import elevation_picture
+
+    grid = sloped_grid(n=199)  # 199 cells: the last block of 2 x 2 is padded
+    scans = pd.DataFrame({"scan": ["A", "B"], "x": [-5.0, 5.0], "y": [5.0, -5.0]})
+    pic = elevation_picture(grid, scans, "plot 7: merged elevation map", max_width=100)
+    assert pic.caption.startswith("plot 7: merged elevation map: ground z ")
+    assert "2 placed scans" in pic.caption and "2 x 2 cells" in pic.caption
+    px = np.asarray(Image.open(io.BytesIO(pic.png)).convert("RGB")).astype(int)
+    assert px.shape == (100, 100, 3)
+    # north up: the grid's first rows (y -10 m, no value in its first 10 x 10 cells) at the bottom
+    assert tuple(px[-2, 1]) == tuple(int(NO_VALUE[k : k + 2], 16) for k in (1, 3, 5))
+    # the ground rises in x: darker (lower) on the left, paler on the right, the spike left out
+    row = px[20]
+    assert row[5].sum() < row[50].sum() < row[95].sum()
+    # the scans' dots: A at x -5, y 5 -> column 25, row 25 (blocks of 0.2 m below y 10 m, the padded top)
+    for (u, v) in ((25, 25), (75, 75)):
+        assert px[v, u].sum() == 0, (u, v)
+
+
 def test_range_mask_picture_for_the_dagster_ui():
     import io
 

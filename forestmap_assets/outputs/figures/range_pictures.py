@@ -19,7 +19,7 @@ MASK_RGB, MASK_ALPHA = (230, 13, 13), 0.85
 OUTLINE_RGB = (255, 140, 0)
 
 
-def _block_reduce(a: np.ndarray, f: int, how: np.ufunc) -> np.ndarray:
+def block_reduce(a: np.ndarray, f: int, how: np.ufunc) -> np.ndarray:
     """``a`` (rows, cols) reduced over ``f`` x ``f`` blocks by the ufunc ``how`` (``np.fmin``:
     the least, NaN only where the whole block is; ``np.logical_or``: any), edges padded with
     the fill value; ``f - 1`` element-wise passes per axis over strided rows, then columns
@@ -60,13 +60,13 @@ def range_mask_picture(
     f = max(1, -(-cols // max_width))
     lo, hi = range_limits(image)
     rng = np.where(image.valid, image.range_m, np.nan).astype(np.float32)
-    near = _block_reduce(rng, f, np.fmin)  # an all-empty block is no return (NaN)
+    near = block_reduce(rng, f, np.fmin)  # an all-empty block is no return (NaN)
     grey = np.clip((near - lo) / max(hi - lo, 1e-9), 0.0, 1.0) * 255.0
     rgb = np.repeat(np.nan_to_num(grey, nan=0.0)[..., None], 3, axis=2)
     rgb[np.isnan(near)] = NO_RETURN_RGB
     caption = title
     if mask is not None and mask.any():
-        m = _block_reduce(np.asarray(mask, bool), f, np.logical_or)
+        m = block_reduce(np.asarray(mask, bool), f, np.logical_or)
         rgb[m] = (1 - MASK_ALPHA) * rgb[m] + MASK_ALPHA * np.asarray(MASK_RGB, float)
         caption = f"{caption} (red: {label}, {int(np.count_nonzero(mask))} pixels)"
     picture = Image.fromarray(rgb.astype(np.uint8), "RGB")
