@@ -12,10 +12,12 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import threading
 import time
 import uuid
 from collections import OrderedDict
 from collections.abc import Callable, Collection
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -149,9 +151,54 @@ def _recalled(path: UPath) -> pa.Table | None:
 
 def forget_recent() -> None:
     """Drop the remembered table and derived objects (the end of a run in a long-lived worker
-    process)."""
+    process), and the tables read ahead that no step took."""
     _RECENT.clear()
     _DERIVED.clear()
+    for fut in _AHEAD.values():
+        fut.cancel()
+    _AHEAD.clear()
+
+
+# Tables read ahead in a background thread (:func:`read_ahead`), by file identity and columns:
+# the tree list reads every scan's range image columns (13.7 M rows of a rendered survey, 0.3-0.5
+# s), which the map's earlier campaign-level stages leave time to read beside them in this
+# process (Parquet decodes without the GIL; issue 16). A step's input loading takes a table once.
+_AHEAD: dict[tuple, Future] = {}
+
+
+def read_ahead(tables: list[tuple[UPath, list[str] | None]]) -> None:
+    """Start reading the local stored ``tables`` (path, columns) one after another in a
+    background thread; :meth:`ParquetIOManager.load_from_path` takes them from there."""
+    todo = []
+    for path, columns in tables:
+        ident = _identity(path)
+        key = (ident, tuple(columns) if columns else None)
+        if ident is not None and key not in _AHEAD:
+            _AHEAD[key] = fut = Future()
+            todo.append((path, columns, fut))
+
+    def work() -> None:
+        for path, columns, fut in todo:
+            if fut.set_running_or_notify_cancel():
+                try:
+                    fut.set_result(read_table(path, columns))
+                except BaseException as exc:  # noqa: BLE001 - the step reads it again itself
+                    fut.set_exception(exc)
+
+    if todo:
+        threading.Thread(target=work, name="read ahead", daemon=True).start()
+
+
+def _taken_ahead(path: UPath, columns: list[str] | None) -> pa.Table | None:
+    """The table :func:`read_ahead` read (waiting for it), or None: not read ahead, or failed."""
+    ident = _identity(path) if _AHEAD else None
+    fut = _AHEAD.pop((ident, tuple(columns) if columns else None), None) if ident is not None else None
+    if fut is None or fut.cancelled():
+        return None
+    try:
+        return fut.result()
+    except Exception:  # noqa: BLE001 - read again by the caller, which reports what is wrong
+        return None
 
 
 # Objects built from a stored table (a scan's refinement cloud with its k-d tree), per worker
@@ -334,7 +381,9 @@ class ParquetIOManager(UPathIOManager):
         if table_path.exists():
             # an input's metadata "columns": read only those (tree_list: x, y, z of the images)
             columns = wanted.get("columns")
-            table = read_table(table_path, columns=columns)
+            table = _taken_ahead(table_path, columns)
+            if table is None:
+                table = read_table(table_path, columns=columns)
             if (table.schema.metadata or {}).get(b"forestmap.kind"):
                 if columns is None:
                     _remember(table_path, table)
@@ -359,6 +408,10 @@ class ParquetIOManager(UPathIOManager):
         if partition is not None:
             path = path / partition
         return self.load_from_path(None, path)
+
+    def read_ahead(self, asset_path: list[str], partitions: Collection[str], columns: list[str] | None) -> None:
+        """Read these partitions of another asset ahead, in a background thread (:func:`read_ahead`)."""
+        read_ahead([(self._table_path(self._base_path.joinpath(*asset_path) / p), columns) for p in partitions])
 
     def derived_from_stored(self, asset_path: list[str], partition: str, build: Callable[[Any], Any]) -> Any:
         """``build(stored output)`` of one partition of another asset, remembered in this

@@ -346,6 +346,7 @@ def _run(
             if background and PAIR_LISTS[0] not in stages:  # beside this run, in the workers
                 count_attempts(attempts, background)
                 session.run_partitions("scan", {}, late=background)
+            session.read_ahead(stages[1:])  # beside the stages before them
             session.execute("campaign", stages, None, 1)
         if writer is not None:
             writer.finish()

@@ -28,6 +28,7 @@ from forestmap_assets.io.store import forget_recent
 from forestmap_assets.orchestration import forkserver as fork_server
 from forestmap_assets.orchestration.events import step_failure_reason
 from forestmap_assets.orchestration.instance import (
+    pair_store,
     sync_pair_partitions,
 )
 from forestmap_assets.orchestration.priority import background
@@ -220,6 +221,20 @@ class Session:
                 self.summary.failures.append((first, partition, run_failure or "run failed"))
                 self.progress(f"  {where}run FAILED: {run_failure or 'run failed'}")
         return ok
+
+    def read_ahead(self, stages: list[str]) -> None:
+        """Start reading the per-scan tables that ``stages`` read column by column (an input's
+        metadata ``columns``: the tree list's range images) in a background thread, while the
+        stages before them run in this process (in_process; :func:`~forestmap_assets.io.store.read_ahead`)."""
+        if self.executor != "in_process" or self.defs is None:
+            return
+        store = pair_store(self.store_url)
+        for stage in stages:
+            assets_def = self.defs.get_assets_def(asset_key(self.campaign, stage))
+            for d in assets_def.node_def.input_defs:
+                key, columns = assets_def.keys_by_input_name.get(d.name), d.metadata.get("columns")
+                if key is not None and columns:
+                    store.read_ahead(list(key.path), self.campaign.scan_ids, list(columns))
 
     def sync_pairs(self) -> dict[str, str]:
         """Pair partitions matched to the stored pair lists, their inputs' fingerprints observed

@@ -68,3 +68,37 @@ def test_derived_objects_are_built_once_while_the_file_is_unchanged(tmp_path):
     assert len(calls) == 3
     with pytest.raises(FileNotFoundError):
         io.derived_from_stored(["c", "refine_clouds"], "s9", build)
+
+
+def test_tables_read_ahead_are_taken_once_with_their_columns(tmp_path, monkeypatch):
+    """The tree list's range image columns are read in a background thread while the stages
+    before it run (issue 16): its input loading takes each table once, only with the same
+    columns and while the file is unchanged; what no step took is dropped at the run's end."""
+    io = ParquetIOManager(base_path=UPath(tmp_path))
+    for sid, seed in (("A", 1), ("B", 2)):
+        io.dump_to_path(None, _image(seed).to_table(), UPath(tmp_path) / "range_images" / sid)
+    forget_recent()
+    reads = []
+    real = store.read_table
+    monkeypatch.setattr(store, "read_table", lambda p, columns=None: reads.append(columns) or real(p, columns))
+
+    class Context:  # the tree list's input: all scans, some columns
+        definition_metadata = {"columns": ["x", "y", "z"]}
+
+    io.read_ahead(["range_images"], ["A", "B", "missing"], ["x", "y", "z"])
+    assert len(store._AHEAD) == 2  # no file, nothing to read
+    for fut in list(store._AHEAD.values()):
+        fut.result()
+    assert reads == [["x", "y", "z"]] * 2
+    got = io.load_from_path(Context(), UPath(tmp_path) / "range_images" / "A")
+    assert len(reads) == 2  # taken from the read-ahead
+    assert got.equals(real(UPath(tmp_path) / "range_images" / "A.parquet", ["x", "y", "z"]))
+    io.load_from_path(Context(), UPath(tmp_path) / "range_images" / "A")  # taken once: read again
+    assert len(reads) == 3
+    # other columns, or a file changed since, are not taken from the read-ahead
+    b = UPath(tmp_path) / "range_images" / "B.parquet"
+    assert store._taken_ahead(b, ["x", "y"]) is None
+    io.dump_to_path(None, _image(3).to_table(), UPath(tmp_path) / "range_images" / "B")
+    assert store._taken_ahead(b, ["x", "y", "z"]) is None
+    forget_recent()
+    assert not store._AHEAD

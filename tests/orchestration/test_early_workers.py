@@ -113,3 +113,31 @@ def test_leaving_removes_the_fork_servers_socket_folder(tmp_path):
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert not list(tmp_path.glob("pymp-*"))
+
+
+def test_the_tree_lists_range_image_columns_are_read_ahead(tmp_path, monkeypatch):
+    """Before a campaign-level run in this process, the per-scan tables its later stages read
+    column by column (the tree list's range images) start reading in the background."""
+    import types
+
+    from forestmap_assets.io.campaign import load_campaign
+    from forestmap_assets.io.store import ParquetIOManager
+    from forestmap_assets.orchestration.session import Session
+    from forestmap_assets.orchestration.workspace import build_definitions
+
+    campaign = load_campaign(_campaign(tmp_path, 2))
+    store_url = str(tmp_path / "store")
+    calls = []
+    monkeypatch.setattr(ParquetIOManager, "read_ahead", lambda self, *a: calls.append(a))
+    session = types.SimpleNamespace(executor="in_process", campaign=campaign, store_url=store_url,
+                                    defs=build_definitions([campaign], store_url, executor="in_process"))
+    Session.read_ahead(session, ["scan_tilts", "integrated_map", "tree_list"])
+    reads = {path[-1]: (path, list(scans), set(columns)) for path, scans, columns in calls}
+    assert len(reads) == len(calls) and "range_images" in reads
+    path, scans, columns = reads["range_images"]
+    assert path == [campaign.key, "range_images"] and scans == ["s0", "s1"]
+    assert {"x", "y", "z"} <= columns and "intensity" not in columns
+    assert all(scans == ["s0", "s1"] and columns for _, scans, columns in reads.values())
+    session.executor = "multiprocess"  # each step in its own process: nothing to read ahead here
+    Session.read_ahead(session, ["tree_list"])
+    assert len(calls) == len(reads)
