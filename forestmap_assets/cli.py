@@ -234,14 +234,17 @@ def _nothing_to_do(args, started: float) -> bool:
 
 def cmd_run(args) -> int:
     started = time.perf_counter()
+    if args.cloud_spacing < 0:
+        raise UsageError(f"--cloud-spacing: expected a size >= 0 m, got {args.cloud_spacing:g}")
     if args.executor != "dask" and _nothing_to_do(args, started):
         return 0
     _start_workers_early(args)
+    from forestmap_assets.io.campaign import load_campaign
+
+    load_campaign(args.campaign)  # a bad campaign says so now, not after Dagster's import (1 s)
     from forestmap_assets.orchestration.runner import run_campaign
     from forestmap_assets.outputs.progress import Progress, use
 
-    if args.cloud_spacing < 0:
-        raise UsageError(f"--cloud-spacing: expected a size >= 0 m, got {args.cloud_spacing:g}")
     progress = Progress(quiet=args.quiet)
     options = {"cloud": None if args.no_cloud else args.cloud_spacing, "report": not args.no_report}
     early: list[Path] = []  # the map's files, written before the where-to-scan-next stages end

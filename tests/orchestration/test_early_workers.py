@@ -141,3 +141,30 @@ def test_the_tree_lists_range_image_columns_are_read_ahead(tmp_path, monkeypatch
     session.executor = "multiprocess"  # each step in its own process: nothing to read ahead here
     Session.read_ahead(session, ["tree_list"])
     assert len(calls) == len(reads)
+
+
+def test_a_bad_campaign_is_reported_before_dagster_is_imported(tmp_path):
+    """A missing campaign folder, a scan file that is not there or a bad option stops `forestmap
+    run` with its one-line error before Dagster and the stages are imported (a second sooner)."""
+    import subprocess
+    import sys
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "campaign.yaml").write_text("name: bad\nscans: [{id: a, path: a.ply}, {id: b, path: b.ply}]\n")
+    code = (
+        "import sys\n"
+        "from forestmap_assets.cli import main\n"
+        "rc = main(sys.argv[1:])\n"
+        "print(rc, 'dagster' in sys.modules, 'forestmap_assets.orchestration.runner' in sys.modules)\n"
+    )
+    env = {**os.environ, "FORESTMAP_HOME": str(tmp_path / "home"), "TMPDIR": str(tmp_path)}
+    for argv, said in (
+        ([str(tmp_path / "nowhere")], "campaign folder does not exist"),
+        ([str(bad)], "scans[0].path: file not found: a.ply"),
+        ([str(bad), "--cloud-spacing", "-1"], "--cloud-spacing: expected a size >= 0 m"),
+    ):
+        done = subprocess.run([sys.executable, "-c", code, "run", *argv], env=env, capture_output=True,
+                              text=True, timeout=120)
+        assert done.stdout.split() == ["2", "False", "False"], (argv, done.stdout, done.stderr)
+        assert said in done.stderr
