@@ -447,3 +447,36 @@ def test_edges_kept_for_the_stems_whose_radius_stayed_are_the_edges_found_again(
     alone = silhouette_edges(tables["S0"], pose, moved, only=only, **kw)
     among = silhouette_edges(tables["S0"], pose, moved, **kw)
     pd.testing.assert_frame_equal(alone, among[only[among["tree"]]].reset_index(drop=True))
+
+
+def test_stems_asked_alone_give_their_rows_among_all_in_a_turned_raised_scan_of_leaning_stems():
+    """``only`` looks at the asked stems' own points first (:func:`_near_asked`, in the scan's
+    frame): with a turned and raised scanner and leaning gates its rows are still those the
+    asked stems have among all stems, for every scan and every choice of stems."""
+    poles = [(6.0, 1.0, 0.15), (6.0, 1.45, 0.12), (-4.0, 5.0, 0.2), (2.0, -7.0, 0.1)]
+    sensors = [(0.0, 0.0, 37.0), (10.0, 6.0, -120.0), (-2.0, 9.0, 200.0)]
+    z0 = 0.4
+    tables = {}
+    for i, (sx, sy, h) in enumerate(sensors):
+        c, s = np.cos(np.radians(h)), np.sin(np.radians(h))  # the poles in the turned scanner's frame
+        tables[f"S{i}"] = scan_table([(c * (x - sx) + s * (y - sy), -s * (x - sx) + c * (y - sy), r) for x, y, r in poles])
+    stems = pd.DataFrame({"x": [p[0] for p in poles], "y": [p[1] for p in poles], "zbh": z0,
+                          "radius_m": [p[2] for p in poles], "slope_x": [0.05, -0.03, 0.0, 0.08],
+                          "slope_y": [-0.04, 0.02, 0.06, 0.0]})
+    tp = params()
+    kw = dict(half_height_m=tp.caliper_half_height_m, beam_exit_m=EXIT_M, beam_divergence_rad=DIV_RAD,
+              reach_m=tp.slice_gate_factor * stems["radius_m"].to_numpy() + tp.slice_gate_margin_m)
+    seen = 0
+    for i, (sx, sy, h) in enumerate(sensors):
+        pose = np.array([sx, sy, z0, h])
+        among = silhouette_edges(tables[f"S{i}"], pose, stems, **kw)
+        seen += len(among)
+        for only in ([False, True, True, False], [True, False, False, False], [False, False, False, True],
+                     [False] * 4):
+            only = np.array(only)
+            alone = silhouette_edges(tables[f"S{i}"], pose, stems, only=only, **kw)
+            want = among[only[among["tree"].to_numpy(int)]].reset_index(drop=True)
+            assert len(alone) == len(want)
+            if len(want):
+                pd.testing.assert_frame_equal(alone, want)
+    assert seen > 0

@@ -92,6 +92,8 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
         z = tbl.column("z").to_numpy().astype(np.float64) + pose[2]
         candidates = np.flatnonzero((z >= zbh.min() - half_height_m) & (z <= zbh.max() + half_height_m))
     idx = np.asarray(candidates, np.int64)
+    if only is not None and idx.size:
+        idx = _near_asked(tbl, idx, pose, stems, reach_m, half_height_m, only)
     if not idx.size:
         return empty
     xyz = np.column_stack([tbl.column(a).to_numpy()[idx] for a in "xyz"]).astype(np.float64)
@@ -146,6 +148,21 @@ def silhouette_edges(tbl: pa.Table, pose: np.ndarray, stems: pd.DataFrame, *, ha
     return pd.DataFrame({"tree": k[ends][clear], "side": side[clear], "row": e_row[clear],
                          "h_m": h[clear], "range_m": e_rng[clear], "quantum_m": (dist[ends] * step)[clear],
                          "phi": normal[clear]})
+
+
+def _near_asked(tbl: pa.Table, idx: np.ndarray, pose: np.ndarray, stems: pd.DataFrame, reach_m: np.ndarray,
+                half_height_m: float, only: np.ndarray) -> np.ndarray:
+    """The rows ``idx`` of ``tbl`` that may lie in the slice of a stem in ``only``: within its
+    reach of its axis, leaning over the half height, in the scan's frame (:class:`StemCells`,
+    a micrometre wider than the slice, so a superset: :func:`slice_members` decides, with every
+    stem, as without ``only``). A pass that changed a few stems' radii looks at their points alone."""
+    if not only.any():
+        return idx[:0]
+    slope = stems[["slope_x", "slope_y"]].to_numpy(float)[only]
+    local = (stems[["x", "y"]].to_numpy(float)[only] - pose[:2]) @ rot_z(pose[3])[:2, :2]
+    reach = np.asarray(reach_m, float)[only] + np.hypot(*slope.T) * half_height_m + 1e-6
+    cells = StemCells(local, stems["zbh"].to_numpy(float)[only] - pose[2], reach, half_height_m + 1e-6)
+    return idx[cells.near(*(tbl.column(a).to_numpy()[idx] for a in "xyz"))]
 
 
 def _pixel_ranges(row: np.ndarray, col: np.ndarray, rng: np.ndarray, rows: np.ndarray,
