@@ -8,14 +8,13 @@ import pandas as pd
 import pyarrow as pa
 import pytest
 
+from forestmap_assets.core.mapping.silhouette_edges import silhouette_edges, tree_edges
 from forestmap_assets.core.mapping.silhouette_widening import campaign_widening
 from forestmap_assets.core.mapping.stem_calipers import (
     blend_calipers,
     caliper_dbh,
     outline_refs,
-    silhouette_edges,
     tree_calipers,
-    tree_edges,
     width_function,
 )
 from forestmap_assets.core.mapping.tree_dbh import tree_dbh
@@ -402,9 +401,9 @@ def test_a_stem_whose_gates_show_no_whole_width_is_gathered_once_about_a_wider_a
 
 
 def test_pixel_ranges_are_the_dense_images():
-    """stem_calipers._pixel_ranges: the range at given pixels of an image stored one row per
+    """silhouette_edges._pixel_ranges: the range at given pixels of an image stored one row per
     valid pixel, as a dense image gives it, in row-major order or any other."""
-    from forestmap_assets.core.mapping.stem_calipers import _pixel_ranges
+    from forestmap_assets.core.mapping.silhouette_edges import _pixel_ranges
 
     rng = np.random.default_rng(2)
     image = np.where(rng.random((40, 90)) < 0.6, rng.uniform(1, 30, (40, 90)), np.inf).astype(np.float32)
@@ -450,7 +449,7 @@ def test_edges_kept_for_the_stems_whose_radius_stayed_are_the_edges_found_again(
 
 
 def test_stems_asked_alone_give_their_rows_among_all_in_a_turned_raised_scan_of_leaning_stems():
-    """``only`` looks at the asked stems' own points first (:func:`_near_asked`, in the scan's
+    """``only`` looks at the asked stems' own points first (:func:`~forestmap_assets.core.mapping.silhouette_edges._near_asked`, in the scan's
     frame): with a turned and raised scanner and leaning gates its rows are still those the
     asked stems have among all stems, for every scan and every choice of stems."""
     poles = [(6.0, 1.0, 0.15), (6.0, 1.45, 0.12), (-4.0, 5.0, 0.2), (2.0, -7.0, 0.1)]

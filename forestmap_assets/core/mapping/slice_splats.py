@@ -96,7 +96,7 @@ def splat_steps(poses: pd.DataFrame, tables) -> dict[str, tuple[float, float]]:
 
 
 def splat_edges_back(edges: pd.DataFrame, splats: dict[str, tuple[float, float]] | None) -> pd.DataFrame:
-    """Silhouette edges (:data:`~.stem_calipers.EDGE_COLUMNS`) of the scans in ``splats`` with each
+    """Silhouette edges (:data:`~.silhouette_edges.EDGE_COLUMNS`) of the scans in ``splats`` with each
     side's distance ``h_m`` less the splats' widening at its range: the side the renderer moved
     outwards by that much."""
     if not splats or edges.empty:

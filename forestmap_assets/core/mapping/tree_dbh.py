@@ -39,7 +39,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from forestmap_assets.core.mapping.stem_calipers import dbh_about, edge_candidates
+from forestmap_assets.core.mapping.silhouette_edges import edge_candidates
+from forestmap_assets.core.mapping.stem_calipers import dbh_about
 from forestmap_assets.core.mapping.stem_slices import slice_stems, widest_anchor
 from forestmap_assets.core.mapping.trees import drop_trees, nested_trees
 
