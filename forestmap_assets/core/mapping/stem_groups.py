@@ -40,11 +40,6 @@ def axis_xy(e: np.ndarray, z: np.ndarray) -> np.ndarray:
     return e[:, :2] + t[:, None] * (e[:, 3:5] - e[:, :2])
 
 
-def axis_at(cyl: pd.DataFrame, z: np.ndarray) -> np.ndarray:
-    """xy of each cylinder's axis line at heights ``z`` (extrapolated along the axis)."""
-    return axis_xy(ends(cyl), z)
-
-
 def _axis_pairs(e: np.ndarray, mid: np.ndarray, zlo: np.ndarray, zhi: np.ndarray, reach_m: float):
     """Cylinder pairs (axis ends ``e``) with midpoints within ``reach_m`` (horizontally):
     indices, their common height range ``lo..hi`` (``lo > hi``: a gap) and the axes' distance

@@ -35,7 +35,7 @@ from forestmap_assets.core.mapping.cylinder_radii import (
     scan_median,
     weighted_stat,
 )
-from forestmap_assets.core.mapping.stem_groups import axis_at, group_stems
+from forestmap_assets.core.mapping.stem_groups import axis_xy, ends, group_stems
 
 TREE_COLUMNS = ["tree_id", "x", "y", "z", "dbh_m", "n_scans", "n_cylinders", "visible_length_m",
                 "dbh_note"]
@@ -289,8 +289,10 @@ def merge_trees(
     if has_range and range_weighting:
         dbh_weights = weights / (beam_exit_m + beam_divergence_rad * obs_range) ** 2
     stems = np.unique(labels)
+    axes = ends(cyl)  # the cylinders' axis ends, once (a stem's rows of them below, not a frame's)
     # first pass: approximate stem xy (at the lowest visible point) for the ground look-up
-    approx_xy = np.array([axis_at(cyl[labels == s], np.full((labels == s).sum(), zlo[labels == s].min())).mean(0) for s in stems])
+    approx_xy = np.array([axis_xy(axes[labels == s], np.full((labels == s).sum(), zlo[labels == s].min())).mean(0)
+                          for s in stems])
     approx_r = np.array([np.average(radius[labels == s], weights=weights[labels == s]) for s in stems])
     if grid is not None:
         ground = ground_under(approx_xy, approx_r, grid.z, grid.x0, grid.y0, grid.cell_m,
@@ -315,7 +317,7 @@ def merge_trees(
         near = gap <= dbh_reach_m
         use = near if near.any() else gap == gap.min()
         w = weights[m][use]
-        xy = np.average(axis_at(sub[use], zb[use]), axis=0, weights=w)
+        xy = np.average(axis_xy(axes[m][use], zb[use]), axis=0, weights=w)
         dbh = np.nan
         # cylinders giving the DBH: near breast height, else within the extrapolation limit
         extrapolated = not near.any()
