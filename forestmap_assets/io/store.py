@@ -171,9 +171,8 @@ def read_ahead(tables: list[tuple[UPath, list[str] | None]]) -> None:
     background thread; :meth:`ParquetIOManager.load_from_path` takes them from there."""
     todo = []
     for path, columns in tables:
-        ident = _identity(path)
-        key = (ident, tuple(columns) if columns else None)
-        if ident is not None and key not in _AHEAD:
+        key = _ahead_key(path, columns)
+        if key is not None and key not in _AHEAD:
             _AHEAD[key] = fut = Future()
             todo.append((path, columns, fut))
 
@@ -189,10 +188,16 @@ def read_ahead(tables: list[tuple[UPath, list[str] | None]]) -> None:
         threading.Thread(target=work, name="read ahead", daemon=True).start()
 
 
+def _ahead_key(path: UPath, columns: list[str] | None) -> tuple | None:
+    """A read-ahead's key: the file's identity (None: not a local file) and the columns."""
+    ident = _identity(path)
+    return None if ident is None else (ident, tuple(columns) if columns else None)
+
+
 def _taken_ahead(path: UPath, columns: list[str] | None) -> pa.Table | None:
     """The table :func:`read_ahead` read (waiting for it), or None: not read ahead, or failed."""
-    ident = _identity(path) if _AHEAD else None
-    fut = _AHEAD.pop((ident, tuple(columns) if columns else None), None) if ident is not None else None
+    key = _ahead_key(path, columns) if _AHEAD else None
+    fut = _AHEAD.pop(key, None) if key is not None else None
     if fut is None or fut.cancelled():
         return None
     try:

@@ -122,10 +122,18 @@ def _near_asked(tbl: pa.Table, idx: np.ndarray, pose: np.ndarray, stems: pd.Data
     if not only.any():
         return idx[:0]
     slope = stems[["slope_x", "slope_y"]].to_numpy(float)[only]
-    local = (stems[["x", "y"]].to_numpy(float)[only] - pose[:2]) @ rot_z(pose[3])[:2, :2]
     reach = np.asarray(reach_m, float)[only] + np.hypot(*slope.T) * half_height_m + 1e-6
-    cells = StemCells(local, stems["zbh"].to_numpy(float)[only] - pose[2], reach, half_height_m + 1e-6)
+    cells = _scan_cells(stems[["x", "y"]].to_numpy(float)[only], stems["zbh"].to_numpy(float)[only], pose, reach,
+                        half_height_m + 1e-6)
     return idx[cells.near(*(tbl.column(a).to_numpy()[idx] for a in "xyz"))]
+
+
+def _scan_cells(centre: np.ndarray, zbh: np.ndarray, pose: np.ndarray, reach: np.ndarray,
+                half_height_m: float) -> StemCells:
+    """:class:`StemCells` of stems (global ``centre``, breast heights ``zbh``) in the frame of
+    the scan placed with ``pose`` (x, y, z, heading_deg), where its image's points are."""
+    local = (centre - pose[:2]) @ rot_z(pose[3])[:2, :2]
+    return StemCells(local, zbh - pose[2], reach, half_height_m)
 
 
 def _pixel_ranges(row: np.ndarray, col: np.ndarray, rng: np.ndarray, rows: np.ndarray,
@@ -157,8 +165,7 @@ def edge_candidates(tables: Mapping[str, pa.Table], poses: pd.DataFrame, stems: 
         if not len(stems) or sid not in placed.index or not set(EDGE_COLUMNS_NEEDED) <= set(tbl.column_names):
             continue
         pose = placed.loc[sid, ["x", "y", "z", "heading_deg"]].to_numpy(float)
-        local = (centre - pose[:2]) @ rot_z(pose[3])[:2, :2]  # the stems in the scan's frame
-        cells = StemCells(local, zbh - pose[2], reach + MAX_SLOPE * half, half)
+        cells = _scan_cells(centre, zbh, pose, reach + MAX_SLOPE * half, half)
         out[sid] = cells.near(*(tbl.column(a).to_numpy() for a in "xyz"))
     return out
 

@@ -18,10 +18,6 @@ from forestmap_assets.outputs.figures.range_pictures import block_reduce
 SCAN_RGB = (0, 0, 0)
 
 
-def _rgb(hex_colour: str) -> tuple[int, int, int]:
-    return tuple(int(hex_colour[k : k + 2], 16) for k in (1, 3, 5))
-
-
 def elevation_picture(grid, scans: pd.DataFrame | None, title: str, *, max_width: int = 600) -> Picture:
     """The merged elevation ``grid`` (:class:`~forestmap_assets.core.features.elevation.ElevationGrid`)
     north up in the colours of ``elevation_figure`` (:data:`.common.ELEVATION_CMAP` over the
@@ -29,6 +25,7 @@ def elevation_picture(grid, scans: pd.DataFrame | None, title: str, *, max_width
     ``scans`` (``scan, x, y``) as black dots with their names; at most ``max_width`` pixels wide
     (blocks of cells: each the lowest of its cells)."""
     from matplotlib import colormaps
+    from matplotlib.colors import to_rgb
     from PIL import Image, ImageDraw
 
     z = np.asarray(grid.z, np.float64)
@@ -39,7 +36,7 @@ def elevation_picture(grid, scans: pd.DataFrame | None, title: str, *, max_width
     lut = np.round(colormaps[ELEVATION_CMAP](np.linspace(0.0, 1.0, 256))[:, :3] * 255).astype(np.uint8)
     level = np.clip((np.nan_to_num(low, nan=lo) - lo) / max(hi - lo, 1e-9), 0.0, 1.0)
     rgb = lut[np.round(level * 255).astype(np.intp)]
-    rgb[np.isnan(low)] = _rgb(NO_VALUE)
+    rgb[np.isnan(low)] = np.round(np.array(to_rgb(NO_VALUE)) * 255).astype(np.uint8)
     picture = Image.fromarray(np.ascontiguousarray(rgb), "RGB")
     n_scans = 0
     if scans is not None and len(scans):
