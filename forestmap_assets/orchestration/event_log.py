@@ -68,14 +68,17 @@ def close_all() -> None:
 _EXIT_HOOK: list[int] = []  # the process that registered close_all (a child starts afresh)
 
 
-def _track(storage: PooledSqliteEventLogStorage) -> None:
+def track(storage) -> None:
+    """Close ``storage`` (its ``_close_all``) with this process's other open databases at exit
+    (:func:`close_all`)."""
     _STORAGES.add(storage)
     if _EXIT_HOOK != [os.getpid()]:  # a multiprocessing child clears its parent's finalizers
         multiprocessing.util.Finalize(None, close_all, exitpriority=10)
         _EXIT_HOOK[:] = [os.getpid()]
 
 
-def _pragmas(dbapi_connection, _record) -> None:
+def normal_sync(dbapi_connection, _record) -> None:
+    """``PRAGMA synchronous=NORMAL`` on a new connection (an engine's ``connect`` listener)."""
     cursor = dbapi_connection.cursor()
     cursor.execute("PRAGMA synchronous=NORMAL")
     cursor.close()
@@ -93,7 +96,7 @@ class PooledSqliteEventLogStorage(SqliteEventLogStorage):
         self._tables: set[str] = set()
         self._template: bytes | None = None
         super().__init__(base_dir, inst_data)
-        _track(self)  # closed at exit (close_all)
+        track(self)  # closed at exit (close_all)
 
     @classmethod
     def config_type(cls):
@@ -116,7 +119,7 @@ class PooledSqliteEventLogStorage(SqliteEventLogStorage):
                     self.conn_string_for_shard(shard),
                     connect_args={"timeout": SQLITE_BUSY_TIMEOUT_SECONDS, "check_same_thread": False},
                 )
-                event.listen(engine, "connect", _pragmas)
+                event.listen(engine, "connect", normal_sync)
             self._engines[shard] = engine
             while len(self._engines) > OPEN_SHARDS:
                 self._engines.popitem(last=False)[1].dispose()

@@ -46,11 +46,22 @@ _COMPUTE_LOGS = (
 )
 
 
+# the run storage with its engine kept open (orchestration/run_storage.py: Dagster's runs.db)
+_RUN_STORAGE = (
+    "run_storage:\n"
+    "  module: forestmap_assets.orchestration.run_storage\n"
+    "  class: PooledSqliteRunStorage\n"
+    "  config:\n"
+    "    base_dir: "
+)
+
+
 def home_config(home: Path) -> str:
-    """The ``dagster.yaml`` of a forestmap home (the event log's folder is written out: every
-    process, whatever its ``$DAGSTER_HOME``, must open the same one)."""
-    return (_OLD_CONFIG + _EVENT_LOG + json.dumps(str(home.resolve() / "history" / "runs")) + "\n"
-            + _COMPUTE_LOGS)
+    """The ``dagster.yaml`` of a forestmap home (the storages' folders are written out: every
+    process, whatever its ``$DAGSTER_HOME``, must open the same ones)."""
+    history = home.resolve() / "history"
+    return (_OLD_CONFIG + _EVENT_LOG + json.dumps(str(history / "runs")) + "\n" + _COMPUTE_LOGS
+            + _RUN_STORAGE + json.dumps(str(history)) + "\n")
 
 
 def _outdated(text: str, home: Path) -> bool:
@@ -64,8 +75,9 @@ def get_instance() -> DagsterInstance:
 
     A new home gets a ``dagster.yaml`` with telemetry and the UI's welcome dialog off, the
     engine's console chatter at WARNING (run logs are kept in full) and Dagster's SQLite event
-    log with its connections kept open (:mod:`~forestmap_assets.orchestration.event_log`, the
-    same files); a home made with the earlier default configuration, or moved, gets the new one.
+    log and run storage with their connections kept open
+    (:mod:`~forestmap_assets.orchestration.event_log`, :mod:`~.run_storage`: the same files); a
+    home made with an earlier configuration of forestmap's, or moved, gets the new one.
     """
     home = dagster_home()
     os.environ["DAGSTER_HOME"] = str(home)
