@@ -77,11 +77,19 @@ def track(storage) -> None:
         _EXIT_HOOK[:] = [os.getpid()]
 
 
-def normal_sync(dbapi_connection, _record) -> None:
-    """``PRAGMA synchronous=NORMAL`` on a new connection (an engine's ``connect`` listener)."""
+def _normal_sync(dbapi_connection, _record) -> None:
     cursor = dbapi_connection.cursor()
     cursor.execute("PRAGMA synchronous=NORMAL")
     cursor.close()
+
+
+def open_engine(conn_string: str, **connect_args) -> Engine:
+    """A pooled SQLAlchemy engine of a SQLite file that this process keeps open: usable from
+    any thread, every connection with ``PRAGMA synchronous=NORMAL`` (WAL: a power cut may lose
+    the last transactions, never corrupt the file)."""
+    engine = create_engine(conn_string, connect_args={**connect_args, "check_same_thread": False})
+    event.listen(engine, "connect", _normal_sync)
+    return engine
 
 
 class PooledSqliteEventLogStorage(SqliteEventLogStorage):
@@ -115,11 +123,7 @@ class PooledSqliteEventLogStorage(SqliteEventLogStorage):
                 self._pid = os.getpid()
             engine = self._engines.pop(shard, None)
             if engine is None:
-                engine = create_engine(
-                    self.conn_string_for_shard(shard),
-                    connect_args={"timeout": SQLITE_BUSY_TIMEOUT_SECONDS, "check_same_thread": False},
-                )
-                event.listen(engine, "connect", normal_sync)
+                engine = open_engine(self.conn_string_for_shard(shard), timeout=SQLITE_BUSY_TIMEOUT_SECONDS)
             self._engines[shard] = engine
             while len(self._engines) > OPEN_SHARDS:
                 self._engines.popitem(last=False)[1].dispose()
