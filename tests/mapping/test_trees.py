@@ -79,6 +79,24 @@ def test_understorey_below_the_top_height_is_not_a_tree():
     assert two["x"].round(6).tolist() == [0.0]
 
 
+def test_the_stem_below_a_fork_stays_and_its_limb_leaves():
+    """A 25 cm stem that four scans saw across breast height, forked at 2.4 m: the limb's five
+    cylinders (18 cm, leaning 0.3, from 2.6 m up) continued down reach breast height 5 cm from
+    the stem's axis. The stem seen there stays, though the limb has more cylinders, and keeps
+    its DBH; the limb's cylinders belong to no tree (own realistic seed 206: 9.9 cm read for a
+    24.8 cm stem about the limb's axis)."""
+    grid = SimpleNamespace(z=np.zeros((150, 150)), x0=-5.0, y0=-5.0, cell_m=0.1)
+    stem = [_cyl(i, (0, 0, 0), (0, 0), 0.125, 0.125, 0.5 + 0.05 * i, 2.2) for i in range(4)]
+    limb = [_cyl(4 + i, (0.05 - 0.3 * 1.3, 0, 0), (0.3, 0), 0.09, 0.09, 2.6 + i, 3.5 + i) for i in range(5)]
+    cyl = pd.DataFrame(stem + limb).assign(scan=["R", "T", "N", "S", "R", "N", "Q", "O", "R"])
+    trees, tree_of = merge_trees(cyl, grid)
+    assert len(trees) == 1 and tree_of.tolist() == [1, 1, 1, 1, 0, 0, 0, 0, 0]
+    assert trees["x"].iloc[0] == pytest.approx(0.0, abs=1e-9) and trees["dbh_m"].iloc[0] == pytest.approx(0.25)
+    # seen by one scan only near breast height, the stem is no better than a stub: more cylinders win
+    one, tree_of = merge_trees(cyl.assign(scan=["R"] * 4 + ["R", "N", "Q", "O", "R"]), grid)
+    assert len(one) == 1 and tree_of.tolist() == [0, 0, 0, 0, 1, 1, 1, 1, 1]
+
+
 def test_pose_helpers_round_trip():
     a, b = (1.0, 2.0, 0.5, 30.0), (-3.0, 4.0, 0.1, 170.0)
     rel = relative_pose(b, a)

@@ -301,6 +301,7 @@ def merge_trees(
         ground = np.full(len(stems), np.nan)
     tree_of_cyl = np.zeros(len(cyl), dtype=int)
     low = np.zeros(len(stems), bool)
+    seen_at_bh = np.zeros(len(stems), bool)  # cylinders of two or more scans near breast height
     for k, s in enumerate(stems):
         m = labels == s
         ground_seen = bool(np.isfinite(ground[k]))
@@ -315,6 +316,7 @@ def merge_trees(
         # distance in height from breast height to each cylinder's extent
         gap = np.maximum(0.0, np.maximum(zlo[m] - zbh, zbh - zhi[m]))
         near = gap <= dbh_reach_m
+        seen_at_bh[k] = (sub["scan"][near].nunique() if "scan" in sub else int(near.sum())) >= 2
         use = near if near.any() else gap == gap.min()
         w = weights[m][use]
         xy = np.average(axis_xy(axes[m][use], zb[use]), axis=0, weights=w)
@@ -402,7 +404,7 @@ def merge_trees(
             n_scans >= understorey_keep[0] and dbh >= understorey_keep[1])
         rows.append((k + 1, xy[0], xy[1], g, dbh, n_scans, int(m.sum()), total,
                      note))
-    return absorb_nested(*drop_trees(pd.DataFrame(rows, columns=TREE_COLUMNS), tree_of_cyl, low))
+    return absorb_nested(*drop_trees(pd.DataFrame(rows, columns=TREE_COLUMNS), tree_of_cyl, low), seen_at_bh[~low])
 
 
 def _drop_small_of_two(sub: pd.DataFrame, pick: np.ndarray, within: np.ndarray, zb: np.ndarray,
@@ -427,27 +429,32 @@ def _drop_small_of_two(sub: pd.DataFrame, pick: np.ndarray, within: np.ndarray, 
     return out
 
 
-def absorb_nested(trees: pd.DataFrame, tree_of_cyl: np.ndarray) -> tuple[pd.DataFrame, np.ndarray]:
+def absorb_nested(trees: pd.DataFrame, tree_of_cyl: np.ndarray,
+                  seen_at_bh: np.ndarray | None = None) -> tuple[pd.DataFrame, np.ndarray]:
     """The tree list less the trees whose axis at breast height lies inside another's section
     (closer than the larger of their radii; two stems cannot overlap): a fork's limb or a crown
     part whose cones were continued down to breast height, or a stray cylinder beside a stem
     that the axis test did not merge (inferred, issue 19). Of two such trees the one with a
-    DBH stays, then the one of more cylinders, then the thicker; the other leaves the list and
+    DBH stays, then the one whose cylinders two or more scans saw near breast height
+    (``seen_at_bh``, per tree; the stem below a fork, not the limb whose cones were continued
+    down to it), then the one of more cylinders, then the thicker; the other leaves the list and
     its cylinders belong to no tree (``tree_of_cyl`` 0), as it would otherwise take half of the
     stem's points at breast height (the nearest axis decides) and hide one silhouette side.
     Own realistic full-resolution seed 19: a 29.4 cm stem and a one-cylinder 15.5 cm "tree"
     8.7 cm from its axis; every scan's far-side edge fell at the axis (benchmarks/results.md,
-    "nested"). Trees are numbered again from 1."""
-    return drop_trees(trees, tree_of_cyl, nested_trees(trees))
+    "nested"). Own realistic seed 206: a 24.8 cm stem forked 2.1 m up, four scans' cylinders
+    spanning breast height (16 in all), gave way to its 18 cm limb (17 cylinders, 2.6 m up and
+    more, continued down to the stem's axis) and read 9.9 cm. Trees are numbered again from 1."""
+    return drop_trees(trees, tree_of_cyl, nested_trees(trees, seen_at_bh=seen_at_bh))
 
 
 def nested_trees(trees: pd.DataFrame, overlap_share: float = 0.0, margin_m: float = 0.0,
-                 prefer: str = "cylinders") -> np.ndarray:
+                 prefer: str = "cylinders", seen_at_bh: np.ndarray | None = None) -> np.ndarray:
     """Which trees leave the list as nested in another (:func:`absorb_nested`): of two trees
     whose axes are closer than the larger radius ``R`` plus ``overlap_share`` of the smaller
     ``r`` plus ``margin_m`` (the smaller's centre within its half radius of the larger's bark:
-    two stems that overlap), the one with a DBH stays, then (``prefer``) the one of more
-    cylinders or the thicker."""
+    two stems that overlap), the one with a DBH stays, then the one ``seen_at_bh`` (when
+    given), then (``prefer``) the one of more cylinders or the thicker."""
     r = np.nan_to_num(trees["dbh_m"].to_numpy(float) / 2, nan=0.0)
     gone = np.zeros(len(trees), bool)
     if len(trees) < 2 or r.max() <= 0:
@@ -457,9 +464,10 @@ def nested_trees(trees: pd.DataFrame, overlap_share: float = 0.0, margin_m: floa
     pairs = cKDTree(xy).query_pairs(r=reach, output_type="ndarray")
     d = np.hypot(*(xy[pairs[:, 0]] - xy[pairs[:, 1]]).T) if len(pairs) else np.zeros(0)
     n_cyl = trees["n_cylinders"].to_numpy(int)
+    at_bh = np.zeros(len(trees), bool) if seen_at_bh is None else np.asarray(seen_at_bh, bool)
 
-    def rank(i):  # who stays: a DBH first, then more cylinders or the thicker
-        return (r[i] > 0, n_cyl[i], r[i]) if prefer == "cylinders" else (r[i] > 0, r[i], n_cyl[i])
+    def rank(i):  # who stays: a DBH first, seen at breast height, then more cylinders or the thicker
+        return (r[i] > 0, at_bh[i], n_cyl[i], r[i]) if prefer == "cylinders" else (r[i] > 0, at_bh[i], r[i], n_cyl[i])
 
     for (i, j), dij in sorted(zip(map(tuple, pairs), d, strict=True), key=lambda t: t[1]):
         big, small = max(r[i], r[j]), min(r[i], r[j])
