@@ -3,7 +3,7 @@ sub-map pairs to search, and their boxes), then per pair (partitions ``<scan>__<
 :mod:`.pairs`) ``pairwise_registrations`` (branch and bound over Olson's score) and
 ``refined_registrations`` (fine registration on the raw points, hue-assisted ICP or
 point-to-plane, used where it fits better; :mod:`forestmap_assets.core.registration.refine`),
-and ``retry_pairs`` (partners for the scans left unplaced).
+and ``retry_pairs`` (partners for the scans left unplaced or held by a link on no loop).
 """
 
 from __future__ import annotations
@@ -305,21 +305,23 @@ def registration_assets(campaign: Campaign) -> list:
         ins={"candidate_pairs": AssetIn(key=key("candidate_pairs")),
              "pairwise_registrations": AssetIn(key=key("pairwise_registrations"),
                                                metadata={"allow_missing_partitions": True})},
-        deps=[key("submaps"), key("cylinder_segments")],  # read only when a scan is unplaced
+        deps=[key("submaps"), key("cylinder_segments")],  # read only when a scan is weakly held
         required_resource_keys={"io_manager"},
         group_name="registration",
         code_version=code_version(campaign, "retry_pairs"),
         description="Pairs for the scans the candidate pairs left unplaced (inferred, issue 17): "
         "every scan outside the largest group the accepted candidate pairs link is screened "
         "against that group again and its best partners (as many as candidate_pairs keeps) not yet "
-        "searched are added as pairs with the no-prior box.",
+        "searched are added as pairs with the no-prior box; when every scan is placed, the best "
+        "such pairs across each accepted link that lies on no loop (issue 16: a link no residual "
+        "could check, left by a failed pair).",
     )
     @timed
     def retry_pairs(context, candidate_pairs, pairwise_registrations):
         from forestmap_assets.core.registration.candidates import (
-            largest_group,
             no_candidates,
             retry_candidates,
+            weak_links,
         )
         from forestmap_assets.core.registration.screening import stems_from_cylinders
 
@@ -328,8 +330,9 @@ def registration_assets(campaign: Campaign) -> list:
         primary = set(zip(candidate_pairs["scan"], candidate_pairs["reference"], strict=True))
         regs = regs[np.array([(a, b) in primary for a, b in zip(regs["scan"], regs["reference"], strict=True)], dtype=bool)]
         extra = no_candidates()
-        # the scans' sub-maps and cylinders are read only when a scan is left unplaced
-        if len(largest_group(campaign.scan_ids, regs)) < len(campaign.scan_ids):
+        # the scans' sub-maps and cylinders are read only when a scan is left unplaced or held by
+        # a link on no loop
+        if weak_links(campaign.scan_ids, regs):
             io = context.resources.io_manager
             submaps = {sid: t for sid in campaign.scan_ids if (t := read_stored(io, campaign, "submaps", sid)) is not None}
             keep = reg.keep_for(len(submaps))
@@ -342,7 +345,7 @@ def registration_assets(campaign: Campaign) -> list:
                     reach={sid: submap_reach(df) for sid, df in submaps.items()}, max_xy_m=reg.max_xy_m)
                 extra["source"] = "retry"
         if len(extra):
-            context.log.info(f"retrying {len(extra)} pairs of unplaced scans")
+            context.log.info(f"retrying {len(extra)} pairs of unplaced scans or links on no loop")
         meta = {"pairs": len(extra), "table": md_table(extra)}
         return Output(extra, metadata=meta, data_version=data_version(extra))
 

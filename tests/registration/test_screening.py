@@ -127,7 +127,9 @@ def test_unplaced_scans_are_retried_against_their_next_best_partners():
     extra = retry_candidates(ids, cand, regs, stems, keep=1, reach={s: 14.0 for s in ids})
     assert set(zip(extra.scan, extra.reference, strict=True)) == {("s6", "s4"), ("s7", "s5")}
     assert (extra.hheading_deg == 180.0).all() and (extra.screen_score >= 5).all()
-    none = retry_candidates(ids, cand, cand.assign(status="accepted"), stems, keep=1)
+    # every scan placed and every link on a loop (the chain and the pairs two views apart): none
+    loops = pd.concat([cand, pd.DataFrame({"scan": ids[2:], "reference": ids[:-2]})], ignore_index=True)
+    none = retry_candidates(ids, loops, loops.assign(status="accepted"), stems, keep=1)
     assert len(none) == 0
 
 
@@ -163,6 +165,59 @@ def test_large_campaigns_keep_more_partners():
     from forestmap_assets.params import RegistrationParams
 
     reg = RegistrationParams()
-    assert [reg.keep_for(n) for n in (6, 12, 13, 100)] == [3, 3, 4, 4]
+    assert [reg.keep_for(n) for n in (6, 12, 13, 100)] == [2, 2, 4, 4]
     assert RegistrationParams(screen_keep=0).keep_for(100) == 0
     assert RegistrationParams(screen_keep_large=6, screen_large_scans=5).keep_for(6) == 6
+
+
+def test_link_graph_bridges_and_their_sides():
+    from forestmap_assets.core.registration.link_graph import bridges, sides
+
+    # two triangles joined by one link, and a tail: c-d and e-f lie on no loop
+    edges = [("a", "b"), ("b", "c"), ("c", "a"), ("c", "d"), ("d", "e"), ("e", "g"), ("g", "d"), ("e", "f")]
+    assert bridges(edges) == [("c", "d"), ("e", "f")]
+    assert sides(edges, ("c", "d")) == ({"a", "b", "c"}, {"d", "e", "f", "g"})
+    assert bridges(edges + [("b", "g")]) == [("e", "f")]
+    assert bridges([("a", "b"), ("b", "c")]) == [("a", "b"), ("b", "c")] and bridges([]) == []
+
+
+def test_screened_pairs_close_a_loop_over_every_link():
+    """One partner a scan keeps a chain of the strip, every link on no loop; ``close_loops`` adds,
+    across each, the best pair of the scores (two views apart) until every link is on a loop."""
+    from forestmap_assets.core.registration.link_graph import bridges
+
+    stems = _strip(5)
+    ids = list(stems)
+    scores = screen_scores(stems)
+    chain = keep_best(scores, 1)
+    assert len(bridges(sorted(chain))) == len(chain)
+    closed = keep_best(scores, 1, close_loops=True)
+    assert chain < closed and bridges(sorted(closed)) == []
+    extra = closed - chain
+    assert all(abs(int(s[1:]) - int(r[1:])) == 2 for s, r in extra), extra
+    assert keep_best(scores, 1, close_loops=True, min_score=10_000) == chain  # nothing scores so high
+    # a candidate table of the strip closes its loops the same way
+    df = candidate_pairs(ids, reach={s: 14.0 for s in ids}, stems=stems, screen_keep=1)
+    assert set(zip(df.scan, df.reference, strict=True)) == closed
+
+
+def test_a_link_left_on_no_loop_by_a_failed_pair_is_retried_across():
+    """Every scan placed, but a failed pair of the searched loop left s3-s2 on no loop: the
+    best pairs across it not yet searched are retried; none when every link is on a loop."""
+    from forestmap_assets.core.registration.candidates import retry_candidates, weak_links
+
+    stems = _strip(1, n=6)
+    ids = list(stems)
+    searched = [("s1", "s0"), ("s2", "s1"), ("s2", "s0"), ("s3", "s2"), ("s4", "s3"), ("s5", "s4"),
+                ("s5", "s3"), ("s3", "s1")]
+    cand = pd.DataFrame({"scan": [s for s, _ in searched], "reference": [r for _, r in searched]})
+    regs = cand.assign(status=["accepted"] * 7 + ["rejected"])  # s3-s1 failed
+    assert weak_links(ids, regs) == [({"s3", "s4", "s5"}, {"s0", "s1", "s2"})]  # a tie: s3's side first
+    extra = retry_candidates(ids, cand, regs, stems, keep=1, reach={s: 14.0 for s in ids})
+    # the best pair across not yet searched: 7 stems, s3-s0 and s4-s2 (the earlier partner first)
+    assert list(zip(extra.scan, extra.reference, strict=True)) == [("s3", "s0")]
+    assert extra.screen_score.tolist() == [7.0] and (extra.hheading_deg == 180.0).all()
+    two = retry_candidates(ids, cand, regs, stems, keep=2, reach={s: 14.0 for s in ids})
+    assert list(zip(two.scan, two.reference, strict=True)) == [("s3", "s0"), ("s4", "s2")]
+    assert weak_links(ids, cand.assign(status="accepted")) == []
+    assert len(retry_candidates(ids, cand, cand.assign(status="accepted"), stems, keep=1)) == 0

@@ -12,8 +12,10 @@ Three sources, in order of precedence:
   (inferred), z half-width from ``search``. With the scans' ``stems`` and ``screen_keep`` > 0,
   only each scan's ``screen_keep`` best partners by the stem-layout screening of
   :mod:`.screening` (inferred, issue 17): the union grows at most as ``screen_keep * N``;
-  campaigns of at most ``screen_keep + 1`` scans keep every pair. ``screen_score`` (matched
-  stems; NaN where not screened) is in the table either way.
+  campaigns of at most ``screen_keep + 1`` scans keep every pair. A kept pair on no loop gets
+  the best pair across it added (issue 16: every link checked by a loop's residuals,
+  :mod:`.link_graph`). ``screen_score`` (matched stems; NaN where not screened) is in the table
+  either way.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.geometry import relative_pose
+from forestmap_assets.core.registration.link_graph import bridges, sides
 from forestmap_assets.core.registration.screening import (
     ScreenSettings,
     keep_best,
@@ -130,7 +133,7 @@ def candidate_pairs(
         motion = {(r.scan, r.reference): (float(r.x), float(r.y), float(r.heading_deg))
                   for r in table.itertuples(index=False)}
         if len(ids) > screen_keep + 1:
-            kept = keep_best(table, screen_keep)
+            kept = keep_best(table, screen_keep, close_loops=True)
     for i in range(len(ids)):
         for j in range(i + 1, len(ids)):
             if kept is not None and (ids[j], ids[i]) not in kept:
@@ -190,6 +193,29 @@ def largest_group(scan_ids, registrations: pd.DataFrame) -> list[str]:
     return max(groups.values(), key=len) if groups else []
 
 
+def _accepted_links(registrations: pd.DataFrame) -> list[tuple[str, str]]:
+    ok = registrations[registrations["status"] == "accepted"] if len(registrations) else registrations
+    links = zip(ok["scan"], ok["reference"], strict=True) if len(ok) else []
+    return list(dict.fromkeys((str(a), str(b)) for a, b in links if a != b))
+
+
+def weak_links(scan_ids, registrations: pd.DataFrame) -> list[tuple[set[str], set[str]]]:
+    """Where the accepted ``registrations`` leave the scans weakly held (inferred, issues 16-17):
+    ``[(outside, group)]`` when scans lie outside the largest linked group (:func:`largest_group`),
+    else one ``(smaller side, larger side)`` per accepted link on no loop (a bridge, whose error
+    no residual would show; :mod:`.link_graph`). Empty when every link is on a loop."""
+    ids = [str(s) for s in scan_ids]
+    main = largest_group(ids, registrations)
+    if len(main) < len(ids):
+        return [({s for s in ids if s not in main}, set(main))]
+    links = [e for e in _accepted_links(registrations) if e[0] in main and e[1] in main]
+    out = []
+    for bridge in bridges(links):
+        a, b = sides(links, bridge)
+        out.append((a, b) if len(a) <= len(b) else (b, a))
+    return out
+
+
 def retry_candidates(
     scan_ids,
     candidates: pd.DataFrame,
@@ -203,37 +229,46 @@ def retry_candidates(
     screen_settings=None,
     min_score: int = 3,
 ) -> pd.DataFrame:
-    """No-prior candidate rows to retry the scans left unplaced (inferred, issue 17).
+    """No-prior candidate rows to retry the scans left unplaced or held by a link on no loop
+    (inferred, issues 16-17; :func:`weak_links`).
 
-    The accepted ``registrations`` link the scans into groups; every scan outside the largest
-    group (ties: the one holding the earliest scan of ``scan_ids``) is screened against the
-    scans of that group, and its ``keep`` best partners not yet in ``candidates`` with at least
-    ``min_score`` matched stems are returned (two stems always match by chance; same box as
-    :func:`candidate_pairs`, ``scan`` the later of the two in ``scan_ids``).
-    Empty when every scan is placed.
+    Unplaced: every scan outside the largest group the accepted ``registrations`` link (ties:
+    the one holding the earliest scan of ``scan_ids``) is screened against the scans of that
+    group, and its ``keep`` best partners not yet in ``candidates`` with at least ``min_score``
+    matched stems are returned (two stems always match by chance; same box as
+    :func:`candidate_pairs`, ``scan`` the later of the two in ``scan_ids``). Otherwise, for each
+    accepted link on no loop, the ``keep`` best such pairs across it (a failed pair of the
+    screened set, which closes a loop over every link it keeps). Empty when every scan is placed
+    and every link is on a loop.
     """
     ids = [str(s) for s in scan_ids]
-    main = largest_group(ids, registrations)
-    if len(main) == len(ids):
+    weak = weak_links(ids, registrations)
+    if not weak:
         return no_candidates()
     searched = {frozenset(p) for p in zip(candidates["scan"], candidates["reference"], strict=True)}
     settings = screen_settings or ScreenSettings()
     empty = np.zeros((0, 3))
-    table = {s: pair_table(np.asarray(stems.get(s, empty), float), settings) for s in ids}
+    table: dict = {}
     order = {s: n for n, s in enumerate(ids)}
-    rows = []
-    for u in ids:
-        if u in main:
-            continue
-        scored = []
-        for m in main:
-            if frozenset((u, m)) in searched:
-                continue
-            ref, scan = sorted((u, m), key=order.get)
-            score = screen_pair(table[ref], table[scan], settings)[0]
-            if score >= min_score:
-                scored.append((-score, order[m], scan, ref))
-        for neg, _, scan, ref in sorted(scored)[:keep]:
+    placed = len(largest_group(ids, registrations)) == len(ids)  # else weak: [(unplaced, group)]
+    rows, added = [], set()
+    for small, large in weak:
+        across = []
+        for u in sorted(small, key=order.get):
+            scored = []
+            for m in sorted(large, key=order.get):
+                if frozenset((u, m)) in searched or frozenset((u, m)) in added:
+                    continue
+                ref, scan = sorted((u, m), key=order.get)
+                for s in (ref, scan):
+                    if s not in table:
+                        table[s] = pair_table(np.asarray(stems.get(s, empty), float), settings)
+                score = screen_pair(table[ref], table[scan], settings)[0]
+                if score >= min_score:
+                    scored.append((-score, order[m], scan, ref))
+            across += scored if placed else sorted(scored)[:keep]
+        for neg, _, scan, ref in sorted(across)[:keep] if placed else across:
+            added.add(frozenset((scan, ref)))
             rows.append(_no_prior_row(scan, ref, reach, float(search[0]), float(search[1]), max_xy_m,
                                       float(-neg)))
     return _table(rows)

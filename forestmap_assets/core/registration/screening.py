@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.cloud import single_linkage
+from forestmap_assets.core.registration.link_graph import bridges, sides
 
 STEM_COLUMNS = ("x", "y", "radius_m")
 
@@ -251,12 +252,14 @@ def screen_scores(stems: dict[str, np.ndarray], settings: ScreenSettings = Scree
     return pd.DataFrame(rows, columns=["scan", "reference", "score", "x", "y", "heading_deg"])
 
 
-def keep_best(scores: pd.DataFrame, keep: int) -> set[tuple[str, str]]:
+def keep_best(scores: pd.DataFrame, keep: int, close_loops: bool = False, min_score: int = 3) -> set[tuple[str, str]]:
     """The pairs to search (inferred, issue 17): the union over scans of each scan's ``keep``
     best-scoring partners, plus a maximum spanning tree of the scores (so a scan in a sparse
     stretch keeps its best link to the rest even when its neighbours prefer others): at most
     ``(keep + 1) * N`` ``(scan, reference)`` rows of ``scores``. Ties go to the pair listed first;
-    ``keep <= 0`` keeps every pair."""
+    ``keep <= 0`` keeps every pair. ``close_loops`` (issue 16): while a kept pair lies on no loop
+    (:func:`~.link_graph.bridges`, a link the residuals could not check), the best pair across
+    it with at least ``min_score`` matched stems is added."""
     all_pairs = list(zip(scores["scan"], scores["reference"], strict=True))
     if keep <= 0:
         return set(all_pairs)
@@ -279,4 +282,23 @@ def keep_best(scores: pd.DataFrame, keep: int) -> set[tuple[str, str]]:
         for s in (sc, ref):
             taken[s] = taken.get(s, 0) + 1
         parent[root(sc)] = root(ref)
-    return chosen
+    return _close_loops(chosen, all_pairs, value, order, min_score) if close_loops else chosen
+
+
+def _close_loops(chosen: set[tuple[str, str]], all_pairs: list[tuple[str, str]], value: np.ndarray,
+                 order: np.ndarray, min_score: int) -> set[tuple[str, str]]:
+    """``chosen`` with, for each bridge in turn, the best-scoring pair across it (module
+    docstring of :mod:`.link_graph`) while one with ``min_score`` matched stems exists."""
+    chosen = set(chosen)
+    while True:
+        edges = [all_pairs[n] for n in order if all_pairs[n] in chosen]
+        for bridge in bridges(edges):
+            a, b = sides(edges, bridge)
+            best = next((all_pairs[n] for n in order if value[n] >= min_score and all_pairs[n] not in chosen
+                         and (all_pairs[n][0] in a) != (all_pairs[n][1] in a)
+                         and {all_pairs[n][0], all_pairs[n][1]} <= a | b), None)
+            if best is not None:
+                chosen.add(best)
+                break
+        else:
+            return chosen
