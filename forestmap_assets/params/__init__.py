@@ -109,9 +109,10 @@ class RegistrationParams(_Stage):
     # or 0: every pair (off in the structured presets: walls, pillar rows). Beyond
     # screen_large_scans scans, screen_keep_large: loops hold a large network from turning
     # about its reference (51 scans, 3 -> 4: farthest 2.0 -> 1.15 cm; results.md "scale").
-    # screen_keep 2 (3 before issue 16's session 49): 8-9 pairs of 6 scans instead of 11-12, every
-    # one on a loop; 16 surveys run both ways, 4-14 % less time, largest xy error 0.78 -> 0.75 cm
-    # (results.md "screen_keep"); a failed pair that leaves a link on no loop is retried across it
+    # screen_keep 2 (3 before issue 16's session 49): 8-9 pairs of 6 scans instead of 11-12,
+    # every one on a loop; 16 surveys run both ways, 1-14 % (median 6 %) less time, largest xy
+    # error 0.78 -> 0.75 cm (results.md "screen_keep"); a failed pair that leaves a link on no
+    # loop is retried across it
     screening: bool = True
     screen_keep: int = 2
     screen_keep_large: int = 4
