@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.geometry import relative_pose
-from forestmap_assets.core.registration.link_graph import bridges, sides
+from forestmap_assets.core.registration.link_graph import bridge_sides
 from forestmap_assets.core.registration.screening import (
     ScreenSettings,
     keep_best,
@@ -204,16 +204,16 @@ def weak_links(scan_ids, registrations: pd.DataFrame) -> list[tuple[set[str], se
     ``[(outside, group)]`` when scans lie outside the largest linked group (:func:`largest_group`),
     else one ``(smaller side, larger side)`` per accepted link on no loop (a bridge, whose error
     no residual would show; :mod:`.link_graph`). Empty when every link is on a loop."""
+    return _weak(scan_ids, registrations)[0]
+
+
+def _weak(scan_ids, registrations: pd.DataFrame) -> tuple[list[tuple[set[str], set[str]]], bool]:
+    """:func:`weak_links`, and whether they are the unplaced scans (True) or bridges."""
     ids = [str(s) for s in scan_ids]
     main = largest_group(ids, registrations)
     if len(main) < len(ids):
-        return [({s for s in ids if s not in main}, set(main))]
-    links = [e for e in _accepted_links(registrations) if e[0] in main and e[1] in main]
-    out = []
-    for bridge in bridges(links):
-        a, b = sides(links, bridge)
-        out.append((a, b) if len(a) <= len(b) else (b, a))
-    return out
+        return [({s for s in ids if s not in main}, set(main))], True
+    return bridge_sides([e for e in _accepted_links(registrations) if e[0] in main and e[1] in main]), False
 
 
 def retry_candidates(
@@ -242,7 +242,7 @@ def retry_candidates(
     and every link is on a loop.
     """
     ids = [str(s) for s in scan_ids]
-    weak = weak_links(ids, registrations)
+    weak, unplaced = _weak(ids, registrations)
     if not weak:
         return no_candidates()
     searched = {frozenset(p) for p in zip(candidates["scan"], candidates["reference"], strict=True)}
@@ -250,9 +250,8 @@ def retry_candidates(
     empty = np.zeros((0, 3))
     table: dict = {}
     order = {s: n for n, s in enumerate(ids)}
-    placed = len(largest_group(ids, registrations)) == len(ids)  # else weak: [(unplaced, group)]
     rows, added = [], set()
-    for small, large in weak:
+    for small, large in weak:  # unplaced: each scan's best partners; a bridge: the best across it
         across = []
         for u in sorted(small, key=order.get):
             scored = []
@@ -266,8 +265,8 @@ def retry_candidates(
                 score = screen_pair(table[ref], table[scan], settings)[0]
                 if score >= min_score:
                     scored.append((-score, order[m], scan, ref))
-            across += scored if placed else sorted(scored)[:keep]
-        for neg, _, scan, ref in sorted(across)[:keep] if placed else across:
+            across += sorted(scored)[:keep] if unplaced else scored
+        for neg, _, scan, ref in across if unplaced else sorted(across)[:keep]:
             added.add(frozenset((scan, ref)))
             rows.append(_no_prior_row(scan, ref, reach, float(search[0]), float(search[1]), max_xy_m,
                                       float(-neg)))

@@ -64,3 +64,20 @@ def sides(edges: list[tuple[str, str]], bridge: tuple[str, str]) -> tuple[set[st
                     todo.append(nxt)
         out.append(seen)
     return out[0], out[1]
+
+
+def bridge_sides(edges: list[tuple[str, str]]) -> list[tuple[set[str], set[str]]]:
+    """For each bridge of ``edges`` (:func:`bridges`, in order) its two :func:`sides`, the
+    smaller first (a tie: the side of the bridge's first scan)."""
+    out = []
+    for bridge in bridges(edges):
+        a, b = sides(edges, bridge)
+        out.append((a, b) if len(a) <= len(b) else (b, a))
+    return out
+
+
+def crosses(pair: tuple[str, str], small: set[str], large: set[str]) -> bool:
+    """Whether ``pair`` joins a scan of ``small`` to one of ``large`` (closes a loop over the
+    bridge between them)."""
+    u, v = pair
+    return (u in small and v in large) or (u in large and v in small)

@@ -23,7 +23,9 @@ translation), as stem-map matchers do (inferred, issue 17):
 
 :func:`screen_scores` scores every pair of a campaign (each scan's pair table is built once) and
 :func:`keep_best` keeps each scan's best ``keep`` partners and a maximum spanning tree of the
-scores; the union grows at most as ``(keep + 1) * N`` (linear in the scans).
+scores; the union grows at most as ``(keep + 1) * N`` (linear in the scans). With
+``close_loops`` it adds, across a kept pair on no loop, the best pair that puts it on one
+(issue 16, :mod:`.link_graph`).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import numpy as np
 import pandas as pd
 
 from forestmap_assets.core.cloud import single_linkage
-from forestmap_assets.core.registration.link_graph import bridges, sides
+from forestmap_assets.core.registration.link_graph import bridge_sides, crosses
 
 STEM_COLUMNS = ("x", "y", "radius_m")
 
@@ -292,11 +294,9 @@ def _close_loops(chosen: set[tuple[str, str]], all_pairs: list[tuple[str, str]],
     chosen = set(chosen)
     while True:
         edges = [all_pairs[n] for n in order if all_pairs[n] in chosen]
-        for bridge in bridges(edges):
-            a, b = sides(edges, bridge)
+        for small, large in bridge_sides(edges):
             best = next((all_pairs[n] for n in order if value[n] >= min_score and all_pairs[n] not in chosen
-                         and (all_pairs[n][0] in a) != (all_pairs[n][1] in a)
-                         and {all_pairs[n][0], all_pairs[n][1]} <= a | b), None)
+                         and crosses(all_pairs[n], small, large)), None)
             if best is not None:
                 chosen.add(best)
                 break
