@@ -117,4 +117,4 @@ def elevation_png(
     ax.set_ylabel("y (m)")
     ax.set_title(title)
     fig.tight_layout()
-    return _atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=dpi))
+    return _atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=dpi, pil_kwargs={"compress_level": 2}))

@@ -58,9 +58,10 @@ def new_figure(width: float, height: float, layout: str | None = "constrained") 
 
 
 def png_bytes(fig: Figure, dpi: int = 110) -> bytes:
-    """The figure as PNG bytes."""
+    """The figure as PNG bytes, lightly compressed (level 2: a 560 x 553 elevation figure
+    encodes in 0.035 s instead of 0.081 s at the default 6, 3 % larger; issue 16)."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    fig.savefig(buf, format="png", dpi=dpi, pil_kwargs={"compress_level": 2})
     return buf.getvalue()
 
 
