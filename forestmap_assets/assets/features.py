@@ -49,7 +49,6 @@ def feature_assets(campaign: Campaign) -> list:
     from forestmap_assets.core.features.cylinders import assemble_cylinders
     from forestmap_assets.core.features.elevation import elevation_grid
     from forestmap_assets.core.features.segments import segment_mask, segment_scan_lines
-    from forestmap_assets.core.features.wall_lines import extract_line_segments
     from forestmap_assets.core.registration.submaps import build_submap
 
     parts = scan_partitions(campaign)
@@ -161,6 +160,9 @@ def feature_assets(campaign: Campaign) -> list:
     )
     @timed
     def line_segments(context, range_images):
+        # Imported here: its scipy.ndimage/sparse imports cost 0.3 s on every run's start (issue 16).
+        from forestmap_assets.core.features.wall_lines import extract_line_segments
+
         lp = params.lines
         extra = ("max_beams", "step_fraction", "hit_margin_m", "min_wall_extent_m", "top_tolerance_m",
                  "wall_depth_cells", "border_xy", "link_cells", "split_at_outliers")
