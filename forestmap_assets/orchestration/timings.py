@@ -2,8 +2,10 @@
 
 For each stage: the compute seconds of the steps that materialised its current outputs, as each
 materialisation records them (``seconds`` metadata, :func:`~forestmap_assets.assets.common.timed`;
-else the step's duration in the run history); per-scan and per-pair stages: the latest
-materialisation of each partition, summed. The report shows this table.
+else the step's duration in the run history), and the CPU seconds of the step's own thread
+(``cpu_seconds``, where recorded: a stage far below its seconds waited for a core, the machine
+busy with other steps); per-scan and per-pair stages: the latest materialisation of each
+partition, summed. The report shows this table.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ TIMING_COLUMNS = [
     "granularity",
     "outputs",
     "seconds",
+    "cpu_seconds",
     "slowest_seconds",
     "last_materialised",
 ]
@@ -65,17 +68,20 @@ def stage_timings(campaign: Campaign, instance=None) -> pd.DataFrame:
                     granularity=granularity,
                     outputs=0,
                     seconds=np.nan,
+                    cpu_seconds=np.nan,
                     slowest_seconds=np.nan,
                     last_materialised="",
                 )
             )
             continue
-        secs = []
+        secs, cpu = [], []
         for rec in latest.values():
             entry = rec.event_log_entry
-            recorded = (rec.asset_materialization.metadata or {}).get("seconds")
+            meta = rec.asset_materialization.metadata or {}
+            recorded = meta.get("seconds")
             secs.append(float(recorded.value) if recorded is not None
                         else durations(entry.run_id).get(entry.step_key or "", np.nan))
+            cpu.append(float(meta["cpu_seconds"].value) if "cpu_seconds" in meta else np.nan)
         newest = max(rec.event_log_entry.timestamp for rec in latest.values())
         rows.append(
             dict(
@@ -83,6 +89,7 @@ def stage_timings(campaign: Campaign, instance=None) -> pd.DataFrame:
                 granularity=granularity,
                 outputs=len(latest),
                 seconds=float(np.nansum(secs)),
+                cpu_seconds=float(np.nansum(cpu)) if np.isfinite(cpu).any() else np.nan,
                 slowest_seconds=float(np.nanmax(secs)) if np.isfinite(secs).any() else np.nan,
                 last_materialised=datetime.fromtimestamp(newest, UTC).strftime(
                     "%Y-%m-%d %H:%M:%S UTC"

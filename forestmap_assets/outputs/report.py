@@ -410,10 +410,11 @@ def build_report(
     add("<h2>Timings</h2>")
     add(
         '<p class="note">Seconds of the Dagster steps that produced the current outputs of each '
-        "stage (per-scan stages: summed over the scans); cached stages keep the time of the run "
-        "that made them.</p>"
+        "stage (per-scan stages: summed over the scans), and the CPU seconds of their threads "
+        "(far fewer: the steps waited for a core that others held); cached stages keep the time "
+        "of the run that made them.</p>"
     )
-    add(html_table(timings, {"seconds": 1, "slowest_seconds": 1}))
+    add(html_table(timings, {"seconds": 1, "cpu_seconds": 1, "slowest_seconds": 1}))
 
     add("<h2>Parameters</h2><details><summary>resolved parameters of every stage</summary><pre>")
     add(html.escape(json.dumps(campaign.params.model_dump(), indent=1, default=str)))
