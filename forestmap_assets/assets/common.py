@@ -356,7 +356,8 @@ def md_table(df: pd.DataFrame, floatfmt: str = ".3f") -> MetadataValue:
 def timed(fn):
     """Asset body wrapper: the step's compute seconds join its Output's metadata (``seconds``),
     with the CPU seconds of its thread (``cpu_seconds``: far fewer when the step waited for a
-    core that other steps held), so the profile of a run reads off the asset catalogue as well
+    core that other steps held; the threads Open3D starts for it, as in the normals of the
+    refinement clouds, are not counted), so the profile of a run reads off the asset catalogue as well
     as the report (issue 16)."""
     import functools
     import inspect
