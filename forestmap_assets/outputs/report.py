@@ -410,9 +410,9 @@ def build_report(
     add("<h2>Timings</h2>")
     add(
         '<p class="note">Seconds of the Dagster steps that produced the current outputs of each '
-        "stage (per-scan stages: summed over the scans), and the CPU seconds of their threads "
-        "(far fewer: the steps waited for a core that others held); cached stages keep the time "
-        "of the run that made them.</p>"
+        "stage (per-scan stages: summed over the scans), and the CPU seconds of their own "
+        "threads (where far fewer, the steps waited for a core that others held; Open3D's "
+        "threads are not counted); cached stages keep the time of the run that made them.</p>"
     )
     add(html_table(timings, {"seconds": 1, "cpu_seconds": 1, "slowest_seconds": 1}))
 
