@@ -357,30 +357,34 @@ def timed(fn):
     """Asset body wrapper: the step's compute seconds join its Output's metadata (``seconds``),
     with the CPU seconds of its thread (``cpu_seconds``: far fewer when the step waited for a
     core that other steps held; the threads Open3D starts for it, as in the normals of the
-    refinement clouds, are not counted), so the profile of a run reads off the asset catalogue as well
-    as the report (issue 16)."""
+    refinement clouds, are not counted), so the profile of a run reads off the asset catalogue
+    as well as the report (issue 16)."""
     import functools
     import inspect
     import time
 
     from dagster import Output
 
-    def stamp(result, start):
+    def clocks() -> tuple[float, float]:
+        return time.perf_counter(), time.thread_time()
+
+    def stamp(result, start: tuple[float, float]):
         if isinstance(result, Output):
-            return result.with_metadata({**result.metadata, "seconds": round(time.perf_counter() - start[0], 3),
-                                         "cpu_seconds": round(time.thread_time() - start[1], 3)})
+            (wall, cpu), (wall0, cpu0) = clocks(), start
+            wall, cpu = wall - wall0, cpu - cpu0
+            return result.with_metadata({**result.metadata, "seconds": round(wall, 3), "cpu_seconds": round(cpu, 3)})
         return result
 
     if inspect.isgeneratorfunction(fn):
         @functools.wraps(fn)
         def gen(*args, **kwargs):
-            start = time.perf_counter(), time.thread_time()
+            start = clocks()
             for item in fn(*args, **kwargs):
                 yield stamp(item, start)
         return gen
 
     @functools.wraps(fn)
     def plain(*args, **kwargs):
-        start = time.perf_counter(), time.thread_time()
+        start = clocks()
         return stamp(fn(*args, **kwargs), start)
     return plain

@@ -4,8 +4,8 @@ For each stage: the compute seconds of the steps that materialised its current o
 materialisation records them (``seconds`` metadata, :func:`~forestmap_assets.assets.common.timed`;
 else the step's duration in the run history), and the CPU seconds of the step's own thread
 (``cpu_seconds``, where recorded: a stage far below its seconds waited for a core, the machine
-busy with other steps; Open3D's own threads are not counted); per-scan and per-pair stages: the latest materialisation of each
-partition, summed. The report shows this table.
+busy with other steps; Open3D's own threads are not counted); per-scan and per-pair stages:
+the latest materialisation of each partition, summed. The report shows this table.
 """
 
 from __future__ import annotations
