@@ -33,7 +33,7 @@ CODE_VERSIONS: dict[str, str] = {
     "line_segments": "1",
     "elevation_maps": "1",
     "submaps": "1",
-    "refine_clouds": "4",
+    "refine_clouds": "5",
     "candidate_pairs": "2",
     "pairwise_registrations": "4",
     "refined_registrations": "8",

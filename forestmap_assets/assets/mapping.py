@@ -120,7 +120,7 @@ def mapping_assets(campaign: Campaign) -> list:
             poses = poses_table(campaign, chained.poses)
             links, residuals = chained.links, chained.residuals
         else:
-            wide = params.refine.beam_divergence_mrad > params.refine.symmetric_max_divergence_mrad
+            wide = params.refine.beam_divergence_mrad > params.refine.wide_beam_min_divergence_mrad
             accepted[list(RHO_COLUMNS)] = shared_scan_correlations(
                 accepted, pairs.get("refinements"), mp.scan_correlation, mp.refined_scan_correlation,
                 mp.footprint_free_z_correlation, wide)
@@ -134,7 +134,7 @@ def mapping_assets(campaign: Campaign) -> list:
         factors = variance_factors(residuals, int(poses["registered"].sum()), mp.variance_factor_min_dof)
         rp = params.refine
         floor = scale_floor(mp.scale_sd_floor, mp.wide_beam_scale_sd_floor, rp.beam_divergence_mrad,
-                            rp.symmetric_max_divergence_mrad)
+                            rp.wide_beam_min_divergence_mrad)
         poses = scale_sd(with_variance_factors(poses, factors), max(abs(sigma_scale), gap_scale(gap, mp.stem_gap_share, mp.stem_gap_free)), floor)
         splats = scan_splats(pairs.get("refinements"))  # the tree list takes them back from the slices
         poses["splat_m"] = poses["scan"].astype(str).map(splats).fillna(0.0).astype(float)

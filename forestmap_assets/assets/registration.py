@@ -224,7 +224,8 @@ def registration_assets(campaign: Campaign) -> list:
         description="One scan prepared once for the fine registration of all its pairs (issues "
         "16, 17): the levelled points cropped to the refinement's range and height band, the data "
         "points (voxel refine.data_voxel_m, at most refine.max_data_points) and the model points "
-        "(voxel refine.two_way_model_voxel_m) with normals oriented to the sensor (spec 3.3).",
+        "(voxel refine.two_way_model_voxel_m) with normals oriented to the sensor (spec 3.3); "
+        "under a wide first-return beam without its mixed pixels (refine.mixed_pixel_jump_m).",
     )
     @timed
     def refine_clouds(context, range_images):
@@ -233,11 +234,21 @@ def registration_assets(campaign: Campaign) -> list:
 
         colour = _has_colour(range_images)  # the pair's method depends on it
         step_rad = table_azimuth_step(range_images)[0]
-        cloud = RefineCloud.from_columns(*(range_images.column(c).to_numpy() for c in "xyz"),
-                                         refine_settings(campaign), step_rad)
+        s = refine_settings(campaign)
+        xyz = [range_images.column(c).to_numpy() for c in "xyz"]
+        mixed = np.zeros(range_images.num_rows, dtype=bool)
+        if s.wide_beam and s.mixed_pixel_jump_m is not None:
+            from forestmap_assets.core.registration.mixed_pixels import table_silhouette_band
+
+            mixed = table_silhouette_band(range_images, s.beam_exit_m, 1e-3 * s.beam_divergence_mrad,
+                                          s.mixed_pixel_jump_m)
+            if mixed.any():
+                xyz = [v[~mixed] for v in xyz]
+        cloud = RefineCloud.from_columns(*xyz, s, step_rad)
         table = cloud.to_table(colour=colour)
         meta = {"data_points": int((table["role"] == "data").sum()),
-                "model_points": int((table["role"] == "model").sum()), "colour": colour}
+                "model_points": int((table["role"] == "model").sum()), "colour": colour,
+                "mixed_pixels_left_out": int(mixed.sum())}
         return Output(table, metadata=meta, data_version=data_version(table))
 
     @asset(

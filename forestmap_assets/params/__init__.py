@@ -152,7 +152,7 @@ class MappingParams(_Stage):
     objective_scale_t: float = 3.0
     objective_scale_correct_t: float = float("inf")
     # a scale no link shows, as a sigma only (per metre; objective_scale); the other where the
-    # campaign's beam is wide (refine: beam_divergence_mrad > symmetric_max_divergence_mrad)
+    # campaign's beam is wide (refine: beam_divergence_mrad > wide_beam_min_divergence_mrad)
     scale_sd_floor: float = 0.0
     wide_beam_scale_sd_floor: float = 0.0
     # the scans' scale sigma at least this share of the stems' and the refined links' difference
@@ -165,7 +165,7 @@ class MappingParams(_Stage):
     scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     refined_scan_correlation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     # z correlation of refined links with no footprint effect: the campaign's beam not wide
-    # (refine.symmetric_max_divergence_mrad) and no splat taken back (None: as the others)
+    # (refine.wide_beam_min_divergence_mrad) and no splat taken back (None: as the others)
     footprint_free_z_correlation: float | None = None
     # scans levelled from shared stems (core/mapping/levelling) at a tilt this large and this many sd;
     # a levelled scan's tilt sd (at least the floor) widens its links' z sd by baseline x sd

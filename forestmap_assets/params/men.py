@@ -66,18 +66,29 @@ class RefineSettings:
     # (x, y, z, heading; two_way.beam_sd)
     beam_exit_m: float = 0.0
     beam_divergence_mrad: float = 0.0
+    # a beam diverging by more than this is wide: its mixed pixels are left out of the
+    # refinement clouds, and the optimal map widens its scale floor and correlations (mapping)
+    wide_beam_min_divergence_mrad: float = 1.0
+    # a wide beam's mixed pixels (core/registration/mixed_pixels.py): the points within one
+    # footprint radius of a range jump larger than this, on its near side (None: kept). The own
+    # simulator's 42 mm + 3 mrad beam, symmetric pairs: max scan error, circular stems 184, 185,
+    # 209, 210: 0.92 / 0.65 / 0.42 / 0.48 -> 0.25 / 0.36 / 0.20 / 0.20 cm, links' mean scale
+    # +0.24 to +0.53 -> -0.01 to +0.09 mm/m (results.md "wide_symmetric")
+    mixed_pixel_jump_m: float | None = 0.3
     # a wide beam's widened silhouettes bias the links more than their Hessian shows. x, y 0.164
     # -> 0.08: the own simulator's scans (3 mrad beam) had x, y error / sd 0.49 / 0.51 (own
     # realistic 14-54, 205 scans), 0.94 / 0.97 with 0.08 (circular 1-4: 0.62 / 0.38 -> 1.13 /
     # 0.70; benchmarks/results.md "beam_share"); z 0.035 -> 0.01: silhouettes widen sideways
     # (z error / sd 0.33 / 0.66 circular / realistic, results.md "scan_offsets")
     beam_sd_share: tuple[float, float, float, float] = (0.08, 0.08, 0.01, 0.11)
-    # two-way pairs' normal: the sum of both points' normals (point_to_plane.plane_pairs); None:
-    # unless the beam diverges by more than symmetric_max_divergence_mrad (the silhouettes a wide
-    # first-return beam widens face their own sensor, and the sum pulled the scans apart: +2-3 mm
-    # along the baseline on the own simulator's 3 mrad beam; benchmarks/results.md "link_sigmas")
-    symmetric: bool | None = None
-    symmetric_max_divergence_mrad: float = 1.0
+    # two-way pairs' normal: the sum of both points' normals (point_to_plane.plane_pairs), also
+    # under a wide beam once its mixed pixels are left out (mixed_pixel_jump_m; before, the sum
+    # pulled circular stems' scans apart there, results.md "link_sigmas"). The model's normal
+    # alone (False) made the wide-beam links of realistic stems short, -0.18 to -0.45 mm/m: own
+    # realistic 208-214 max scan error 1.21 / 0.82 / 0.65 / 0.60 / 0.47 / 0.29 / 0.51 -> 0.70 /
+    # 0.28 / 0.59 / 0.31 / 0.19 / 0.25 / 0.52 cm, circular 184, 185, 209-212 0.62 / 0.43 / 0.49 /
+    # 0.37 / 0.55 / 0.56 -> 0.25 / 0.36 / 0.20 / 0.20 / 0.47 / 0.29 cm (results.md "wide_symmetric")
+    symmetric: bool = True
     # with the symmetric pairs, the model-normal objective's pose along the baseline
     # (two_way.objective_spread): the bias of widened silhouettes no residual shows. Scope
     # "link": each link's difference joins its sigma along the baseline; "campaign": the optimal
@@ -140,11 +151,9 @@ class RefineSettings:
     splat_sd_z_per_m: float = 5.0
 
     @property
-    def symmetric_pairs(self) -> bool:
-        """Whether the two-way refinement sums the pairs' normals (``symmetric``)."""
-        if self.symmetric is not None:
-            return bool(self.symmetric)
-        return self.beam_divergence_mrad <= self.symmetric_max_divergence_mrad
+    def wide_beam(self) -> bool:
+        """Whether the campaign's beam diverges by more than ``wide_beam_min_divergence_mrad``."""
+        return self.beam_divergence_mrad > self.wide_beam_min_divergence_mrad
 
 
 Combine = Literal["spacing", "variance", "either", "both"]

@@ -25,8 +25,9 @@ own fit rather than because it stays within a box of the coarse sigma:
 Each pair's normal is the normalised sum of the two points' normals (``symmetric``; the
 symmetric objective of Rusinkiewicz 2019, :func:`~.point_to_plane.plane_pairs`): with the model's
 normal alone, bark seen from one side pulled every scan toward the other, about 0.1 mm a metre
-of baseline on exact clouds and twice that at 2.5 cm range noise (issue 19). Not with a wide
-first-return beam (``symmetric_max_divergence_mrad``), whose widened silhouettes the sum follows.
+of baseline on exact clouds and twice that at 2.5 cm range noise (issue 19). A wide first-return
+beam's widened silhouettes, which the sum follows, are left out of the clouds first
+(:mod:`~forestmap_assets.core.registration.mixed_pixels`).
 
 The pose used is the mean of the two directions. Its sigma is
 ``two_way_sd_scale x sqrt(H^2 + (d / 2)^2 + beam^2)``, floored: ``H`` the larger Gauss-Newton
@@ -146,7 +147,7 @@ class RefineCloud:
             keep = keep[np.sort(np.random.default_rng(0).choice(len(keep), s.max_data_points, replace=False))]
         cloud = cls(data=src[keep], model=model, normals=normals, step_rad=float(step_rad),
                     data_normals=None if src_normals is None else src_normals[keep])
-        return cloud.with_data_normals(s.normal_k) if s.symmetric_pairs else cloud
+        return cloud.with_data_normals(s.normal_k) if s.symmetric else cloud
 
     def to_table(self, colour: bool = False) -> pd.DataFrame:
         """One row per point: ``x, y, z``, ``nx, ny, nz`` (NaN for data points without normals),
@@ -249,7 +250,7 @@ def _one_way(data_cloud: RefineCloud, model_cloud: RefineCloud, pose, s: RefineS
     data = data_cloud.data[keep]
     if len(data) < s.min_pairs:
         return None
-    dn = data_cloud.with_data_normals(s.normal_k).data_normals[keep] if s.symmetric_pairs else None
+    dn = data_cloud.with_data_normals(s.normal_k).data_normals[keep] if s.symmetric else None
     r0, t0 = pose4_to_matrix(pose)
     fine = s.two_way_radii_m[-1]
     tree, normals = model_cloud.grid, model_cloud.normals
@@ -413,7 +414,7 @@ def with_objective_spread(out: dict, scan: RefineCloud, ref: RefineCloud, s: Ref
     sigmas; unchanged where the refinement found too little overlap."""
     if out["forward"] is None:
         return out
-    spread = objective_spread(scan, ref, out["forward"], s) if s.symmetric_pairs and s.objective_sd else np.nan
+    spread = objective_spread(scan, ref, out["forward"], s) if s.symmetric and s.objective_sd else np.nan
     if s.objective_sd_scope == "link" and np.isfinite(spread):
         sd, mean = out["sd"], out["pose"]
         sd[:2] = np.hypot(sd[:2], abs(spread) * np.abs(mean[:2]) / max(float(np.hypot(*mean[:2])), 1e-12))
