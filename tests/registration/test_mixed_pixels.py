@@ -4,11 +4,12 @@ refinement clouds (core/registration/mixed_pixels.py, issue 16)."""
 from __future__ import annotations
 
 import numpy as np
+from helpers.beam_scenes import POLE_GRID, pole_before_wall
 
 from forestmap_assets.core.registration.mixed_pixels import silhouette_band, table_silhouette_band
 from forestmap_assets.params.men import RefineSettings
 from forestmap_assets.sim import ScanPose, VirtualScanner
-from forestmap_assets.sim.scene_mesh import KIND_STEM, SceneMesh, box_mesh, tube_mesh
+from forestmap_assets.sim.scene_mesh import KIND_STEM
 
 STEP = np.radians(0.1)  # rad a pixel, both ways
 
@@ -41,15 +42,7 @@ def test_the_simulated_beams_mixed_pixels_are_in_the_band():
     """The own simulator's 42 mm + 3 mrad beam (spec 1.1) on a 0.2 m pole at 5 m before a wall
     at 15 m: every mixed pixel is found, and the band is at most the mixed pixels and one
     footprint of the pole's own edge beside them."""
-    pv, pf = tube_mesh(np.array([[5.0, 0, -2]]), np.array([[5.0, 0, 2]]), np.array([0.1]),
-                       np.array([0.1]), n_sides=64, n_rings=2)
-    wv, wf = box_mesh(np.array([[15.5, 0, -5]]), np.array([[1.0, 20.0, 10.0]]), np.zeros(1))
-    mesh = SceneMesh(np.vstack([pv, wv]), np.vstack([pf, wf + len(pv)]),
-                     np.r_[np.full(len(pf), KIND_STEM), np.zeros(len(wf))].astype(np.uint8),
-                     np.r_[np.ones(len(pf)), -np.ones(len(wf))].astype(np.int32),
-                     np.r_[np.ones(len(pf)), 2 * np.ones(len(wf))].astype(np.int32))
-    scanner = VirtualScanner(mesh, resolution="full", hfov_deg=5.5, n_cols=50, vfov_deg=2.2, n_rows=20,
-                             range_sigma_m=0.0)
+    scanner = VirtualScanner(pole_before_wall(), **POLE_GRID)
     res = scanner.scan(ScanPose(0.0, 0.0, 0.0), seed=1)
     beam = scanner.sensor_beam()
     exit_m, div = 1e-3 * beam["beam_exit_mm"], 1e-3 * beam["beam_divergence_mrad"]

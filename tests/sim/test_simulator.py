@@ -9,10 +9,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from helpers.beam_scenes import POLE_GRID, pole_before_wall
 
 from forestmap_assets.core.features.range_image import RangeImage
 from forestmap_assets.sim import ScanPose, VirtualScanner, make_forest, simulate_campaign
-from forestmap_assets.sim.scene_mesh import KIND_GROUND, KIND_STEM, SceneMesh, box_mesh, tube_mesh
+from forestmap_assets.sim.scene_mesh import KIND_GROUND, KIND_STEM
 
 SMALL = dict(scans=3, trees=20, plot_size=30.0, seed=3, resolution="quarter")
 NOISE_FREE = {"range_sigma_m": 0.0}
@@ -270,15 +271,7 @@ def test_forest_layout():
 
 def test_beam_footprint_widens_thin_objects():
     """A 0.2 m pole at 5 m in front of a wall at 15 m (spec 1.1: 0.042 m + 3 mrad beam)."""
-    pv, pf = tube_mesh(np.array([[5.0, 0, -2]]), np.array([[5.0, 0, 2]]), np.array([0.1]),
-                       np.array([0.1]), n_sides=64, n_rings=2)
-    wv, wf = box_mesh(np.array([[15.5, 0, -5]]), np.array([[1.0, 20.0, 10.0]]), np.zeros(1))
-    mesh = SceneMesh(np.vstack([pv, wv]), np.vstack([pf, wf + len(pv)]),
-                     np.r_[np.full(len(pf), KIND_STEM), np.zeros(len(wf))].astype(np.uint8),
-                     np.r_[np.ones(len(pf)), -np.ones(len(wf))].astype(np.int32),
-                     np.r_[np.ones(len(pf)), 2 * np.ones(len(wf))].astype(np.int32))
-    geo = dict(resolution="full", hfov_deg=5.5, n_cols=50, vfov_deg=2.2, n_rows=20,
-               range_sigma_m=0.0)
+    mesh, geo = pole_before_wall(), POLE_GRID
     pose = ScanPose(0.0, 0.0, 0.0)
     widths = {}
     for k in (0, 8):

@@ -63,7 +63,9 @@ def table_silhouette_band(table, exit_m: float, divergence_rad: float, jump_m: f
                           max_pixels: int = 16) -> np.ndarray:
     """:func:`silhouette_band` of a stored range image (Arrow table of valid pixels ``row, col,
     range_m``, its angles in the schema metadata), one flag per row of the table; all False
-    when the beam has no footprint."""
+    when the beam has no footprint. Only the range channel is scattered into the image: the whole
+    :meth:`~forestmap_assets.core.features.range_image.RangeImage.from_table` (its points too)
+    took 0.3 s of a 1.4 M-point scan against 0.05 s."""
     n = table.num_rows
     if not (exit_m > 0 or divergence_rad > 0) or n == 0:
         return np.zeros(n, dtype=bool)
