@@ -16,8 +16,9 @@ from forestmap_assets.orchestration.timings import stage_timings
 
 
 def _spin(seconds: float) -> None:
-    end = time.perf_counter() + seconds
-    while time.perf_counter() < end:
+    """Work until this thread has used ``seconds`` of CPU (however busy the machine is)."""
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
         pass
 
 
@@ -36,7 +37,7 @@ def test_timed_records_seconds_and_the_threads_cpu_seconds():
     assert meta["kept"].value == 2
     assert meta["seconds"].value >= 0.3 and meta["cpu_seconds"].value < 0.1  # asleep: no CPU
     meta = next(works()).metadata
-    assert meta["cpu_seconds"].value > 0.2 and meta["cpu_seconds"].value <= meta["seconds"].value + 0.01
+    assert meta["cpu_seconds"].value >= 0.29 and meta["cpu_seconds"].value <= meta["seconds"].value + 0.01
 
 
 @pytest.mark.slow
