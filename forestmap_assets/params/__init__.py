@@ -326,7 +326,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # (inferred) links sharing a scan share its feature errors; refined links' heading 0.08 ->
         # 0.25: scans' heading error / sd own realistic 55-82 1.29 -> 1.14, Sylva 0.96 -> 0.79,
         # rendered 1.04 -> 0.88 (results.md "heading_correlation"). z_residual_sigmas 5 (results.md
-        # "ground_cells"). Scale floors: Sylva's networks 0.06 mm/m RMS (results.md "scale_floor"),
+        # "ground_cells"). Scale floors: the networks' scale, 0.10 mm/m RMS on Sylva 216-231 (was
+        # 0.06 on Sylva 1-20), -0.08 to -0.14 mm/m on renders 150-154 (results.md "scale_floor_10"),
         # the own simulator's 3 mrad beam's -0.2 / +0.17 mm/m on realistic / circular stems
         # (results.md "wide_beam_scale"). Variance factor: Sylva 36's loops 1.3 / 1.7 x worse.
         # objective_scale_correct_t left at inf (a sigma only): with the renders' splats taken back
@@ -336,13 +337,13 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # off), new render kinds' z error / sd 1.23 (84 % in 2 sd) -> 1.15 (92 %) ("z_correlation")
         # stem_gap_share: half the stems' and raw points' scale difference ("stem_gap") beyond
         # 0.3 mm/m, the stems' own bias (Sylva's +0.14 to +0.37: x, y error / sd 0.66 / 0.65 on
-        # Sylva 94-100; scale floor 0.06 mm/m, Sylva's networks' RMS; results.md "gap_free").
+        # Sylva 94-100; results.md "gap_free").
         # Refined links' z errors correlate by 0.28 / 0.33 among links sharing a scan where a
         # wide beam or splats meet the ground (own realistic, rendered), 0.11 on Sylva's:
         # footprint_free_z_correlation 0.1 (results.md "footprint_z")
         "mapping": {"scan_correlation": (0.25, 0.25, 0.15, 0.05), "z_residual_sigmas": 5.0,
                     "refined_scan_correlation": (0.1, 0.1, 0.3, 0.25),
-                    "scale_sd_floor": 6e-5, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3,
+                    "scale_sd_floor": 1e-4, "wide_beam_scale_sd_floor": 2e-4, "variance_factor_min_dof": 3,
                     "stem_gap_share": 0.5, "stem_gap_free": 3e-4, "footprint_free_z_correlation": 0.1},
         # (inferred) heading error RMS of the branch-and-bound links 2-4 times lower on Sylva's
         # and rendered surveys, its sigma from the stems (benchmarks/results.md "stem_polish")
