@@ -68,6 +68,7 @@ class RunSummary:
     seconds: float = 0.0
     kept_earlier: set[str] = field(default_factory=set)  # failed scans whose older results stand
     settled: bool = False  # the session ended with every stage fresh (recorded as settled)
+    level_next: bool = False  # it stopped after the map's stages: the scans are levelled next
 
     @property
     def left_out(self) -> dict[str, str]:
@@ -320,6 +321,13 @@ class Session:
         collected by :meth:`wait_late` (issue 16: next_vantage_points beside the map's files)."""
         fut = self._in_process_pool().submit(_partition_worker, self._base(), "campaign", None, stages, 1, late=True)
         self.pending.update({(stage, None): fut for stage in stages})
+
+    def cancel_late(self) -> None:
+        """Drop the late runs not started yet and stop following the others, which end on
+        their own (the map is made again from levelled scans, and what they make with it)."""
+        pending, self.pending = self.pending, {}
+        for fut in dict.fromkeys(pending.values()):
+            fut.cancel()
 
     def late_done(self) -> bool:
         """Whether every late run (:meth:`run_partitions`, :meth:`run_late_campaign`) has ended."""

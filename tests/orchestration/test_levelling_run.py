@@ -41,10 +41,14 @@ def _pose_errors(root) -> pd.DataFrame:
 @pytest.mark.slow
 def test_tilted_scans_without_tilt_are_levelled_and_placed(tmp_path, monkeypatch):
     root, ids = _tilted_campaign(tmp_path, monkeypatch)
-    lines = []
-    summary = run_campaign(root, progress=lines.append)
+    lines, ready = [], []
+    summary = run_campaign(root, progress=lines.append, map_ready=ready.append)
     assert summary.failures == []
     assert any("levelled by levelling.yaml" in line for line in lines), lines
+    # the map's files once, from the levelled map; where to scan next only from that map (the
+    # first pass stops after its map's stages)
+    assert len(ready) == 1
+    assert [stage for stage, _ in summary.ran].count("next_vantage_points") == 1
     estimates, rounds = read_levelling(root)
     assert rounds == 1 and set(estimates) == set(ids[1:])
     for sid, truth in zip(ids[1:], TILTS[1:], strict=True):
@@ -79,4 +83,5 @@ def test_a_campaign_folder_that_cannot_take_the_file_still_gets_its_map(tmp_path
     summary = run_campaign(root, progress=lines.append, map_ready=ready.append)
     assert summary.failures == [] and len(ready) == 1
     assert any("cannot be written (Permission denied); the map keeps their tilt" in line for line in lines), lines
+    assert "next_vantage_points" in {stage for stage, _ in summary.ran}  # after the map's files
     assert not (root / "levelling.yaml").exists()
