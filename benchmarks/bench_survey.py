@@ -104,10 +104,11 @@ def run_measured(cmd: list[str], log: Path, env: dict | None = None, echo: bool 
     lines: list[tuple[float, str]] = []
     rss: list[tuple[float, int]] = []
     cpu: dict[int, tuple[float, float]] = {}
+    who: dict[int, tuple[int, str]] = {}
     t0 = time.perf_counter()
     with open(log, "w") as fh, subprocess.Popen(full, stdout=subprocess.PIPE,
                                                 stderr=subprocess.STDOUT, text=True, env=env) as p:
-        sampler = threading.Thread(target=sample_rss, args=(p, t0, rss, 0.5, cpu), daemon=True)
+        sampler = threading.Thread(target=sample_rss, args=(p, t0, rss, 0.5, cpu, who), daemon=True)
         sampler.start()
         fh.write("# " + " ".join(map(str, cmd)) + "\n")
         for raw in p.stdout:
@@ -126,7 +127,9 @@ def run_measured(cmd: list[str], log: Path, env: dict | None = None, echo: bool 
     sampled = [sum(v) for v in zip(*cpu.values(), strict=True)] if cpu else [0.0, 0.0]
     if sampled[0] + sampled[1] > usage.get("user_s", 0.0) + usage.get("sys_s", 0.0):
         usage["user_s"], usage["sys_s"] = sampled
-    usage.update(load_before=load0, load_after=os.getloadavg()[0], lines=lines, rss=rss)
+    usage.update(load_before=load0, load_after=os.getloadavg()[0], lines=lines, rss=rss,
+                 procs={pid: {"cpu_s": sum(c), "ppid": who.get(pid, (0, ""))[0],
+                              "cmd": who.get(pid, (0, ""))[1]} for pid, c in cpu.items()})
     with open(log.with_suffix(".rss.csv"), "w") as fh:
         fh.write("t_s,rss_bytes\n" + "".join(f"{t:.2f},{b}\n" for t, b in rss))
     return usage
@@ -137,11 +140,11 @@ PSS_EVERY_S = 10.0  # and at least this often
 
 
 def sample_rss(proc: subprocess.Popen, t0: float, out: list, every_s: float = 0.5,
-               cpu: dict | None = None) -> None:
+               cpu: dict | None = None, who: dict | None = None) -> None:
     """Memory of the whole process tree under ``proc`` every ``every_s`` seconds: the sum of
     each process's proportional set size (PSS: shared pages split, so forked workers are not
     counted twice; RSS where PSS is unreadable); ``cpu``: each process's last seen (user,
-    system) seconds. psutil; nothing without it.
+    system) seconds; ``who``: each process's parent and command line. psutil; nothing without it.
 
     PSS makes the kernel walk every page table of a process, 17 ms for a 2.7 GB worker: read
     every half second from four or five processes, it took 2.6 s of CPU (8 % of a core) during a
@@ -171,6 +174,8 @@ def sample_rss(proc: subprocess.Popen, t0: float, out: list, every_s: float = 0.
                 if cpu is not None:
                     t = q.cpu_times()
                     cpu[q.pid] = (t.user, t.system)
+                if who is not None and q.pid not in who:
+                    who[q.pid] = (q.ppid(), " ".join(q.cmdline())[:200])
                 rss[q] = q.memory_info().rss
             except psutil.Error:
                 pass
@@ -467,8 +472,9 @@ def stage_breakdown(lines: list[tuple[float, str]], wall: float,
                     rss: list[tuple[float, int]] = ()) -> dict[str, list[float]]:
     """{stage: [seconds, peak GiB]} from forestmap's log: seconds summed over the scans, peak
     resident memory of the tree sampled while the stage ran (NaN without samples); plus the
-    start-up (until its first line), the exports (after the last stage) and the rest (Dagster
-    between steps)."""
+    start-up (until its first line) and the exports (after the last stage). Steps of two workers
+    overlap, so the rows do not add up to the wall (:func:`cpu_by_process` says where the CPU
+    goes)."""
     windows: dict[str, list[tuple[float, float]]] = {}
     secs: dict[str, float] = {}
     last_step, first = None, lines[0][0] if lines else 0.0
@@ -485,7 +491,6 @@ def stage_breakdown(lines: list[tuple[float, str]], wall: float,
     res.update({k: [v, *_peak(rss, windows[k])] for k, v in secs.items()})
     if last_step is not None and written is not None:
         res["exports (no cloud)"] = [written - last_step, *_peak(rss, [(last_step, written)])]
-    res["other (Dagster, waiting)"] = [wall - sum(v[0] for v in res.values()), math.nan]
     return res
 
 
@@ -564,6 +569,8 @@ def run_forestmap(case: dict, rundir: Path) -> dict:
     after = code_state()
     res["code"] = code if after == code else f"{code}, changed during the run to {after}"
     res["stages"] = stage_breakdown(m["lines"], m["wall_s"], m["rss"])
+    res["cpu_by_process"] = cpu_by_process(m.get("procs", {}))
+    res["step_cpu_s"] = step_cpu(case, home)
     res["pair_seconds"] = [float(p["s"]) for _, s in m["lines"] if (p := PAIR.match(s))]
     if not (out / "poses.csv").exists():
         res["error"] = last_error(m["lines"])
@@ -605,6 +612,50 @@ def tree_scores(root: Path, out: Path) -> dict | None:
             "dbh_bias_cm": float(err.mean()) if err.size else None,
             "dbh_max_cm": float(abs(err).max()) if err.size else None,
             "rows": len(trees), "rows_unmatched": int(len(trees) - m["est_x"].notna().sum())}
+
+
+def cpu_by_process(procs: dict) -> dict[str, float]:
+    """CPU seconds of a forestmap run by process (as last sampled, so each under by at most one
+    sampling interval): ``main`` (the ``forestmap run`` process: start-up, the campaign-level
+    stages, the exports), ``fork server`` (imports the workers' libraries once), ``workers``
+    (the per-scan and per-pair steps), ``other``."""
+    main = [pid for pid, q in procs.items() if " run " in q["cmd"] and "forkserver" not in q["cmd"]
+            and "--measure" not in q["cmd"]]
+    server = [pid for pid, q in procs.items() if "forkserver" in q["cmd"] and q["ppid"] in main]
+    out = {"main": 0.0, "fork server": 0.0, "workers": 0.0, "other": 0.0}
+    for pid, q in procs.items():
+        role = ("main" if pid in main else "fork server" if pid in server
+                else "workers" if q["ppid"] in server else "other")
+        out[role] += q["cpu_s"]
+    out["workers_n"] = sum(q["ppid"] in server for q in procs.values())
+    return out
+
+
+def step_cpu(case: dict, home: Path) -> float | None:
+    """CPU seconds of every step body of a fresh run (their threads' ``cpu_seconds`` metadata,
+    every materialisation, both passes of a levelling run; Open3D's own threads are not
+    counted), None when the run history cannot be read."""
+    try:
+        from dagster import AssetKey, DagsterInstance
+        from dagster._core.event_api import AssetRecordsFilter
+
+        from forestmap_assets.assets.common import PIPELINE
+        from forestmap_assets.io.campaign import load_campaign
+
+        campaign = load_campaign(case["root"])
+        instance = DagsterInstance.from_config(str(home / "dagster"))
+        total = 0.0
+        for stage, _ in PIPELINE:
+            records = instance.fetch_materializations(
+                AssetRecordsFilter(asset_key=AssetKey([campaign.key, stage])), limit=10_000).records
+            for rec in records:
+                meta = rec.asset_materialization.metadata or {}
+                total += float(meta["cpu_seconds"].value) if "cpu_seconds" in meta else 0.0
+        instance.dispose()
+        return total
+    except Exception as e:  # noqa: BLE001 - the table leaves it out
+        print(f"  (step CPU not readable: {e})", flush=True)
+        return None
 
 
 def refinement_outcome(case: dict, home: Path, lines) -> list[dict]:
@@ -864,11 +915,12 @@ def report(cases: list[dict], meta: dict) -> str:
                      f"{closer}/{len(p)} | {md(x['xy_bnb_cm'] for x in p):.1f} / "
                      f"{md(x['xy_refined_cm'] for x in p):.1f} |")
     stages: list[str] = []
-    for c in cases:
-        stages += [k for k in c["forestmap"]["stages"] if k not in stages]
+    for c in cases:  # an older case's "other": the wall minus the summed stages, < 0 when steps overlap
+        stages += [k for k in c["forestmap"]["stages"] if k not in stages and not k.startswith("other")]
     L += ["", "**Where forestmap's run spends its time** (seconds summed over the scans, from its "
           "log lines, and in brackets the peak memory in GiB (summed PSS) sampled while the stage ran; "
-          "start-up = until its first line, exports = after the last stage):", "",
+          "start-up = until its first line, exports = after the last stage; two workers' steps "
+          "overlap, so the rows do not add up to the wall):", "",
           "| stage | " + " | ".join(case_name(c) for c in cases) + " | mean share of wall |",
           "|---|" + "---|" * (len(cases) + 1)]
     for st in stages:
@@ -877,6 +929,7 @@ def report(cases: list[dict], meta: dict) -> str:
         L.append(f"| {st} | " + " | ".join(f"{x[0]:.1f}" + ("" if math.isnan(x[1]) else f" ({x[1]:.1f})")
                                           for x in v) + f" | {share:.0%} |")
     L.append("| wall | " + " | ".join(f"{c['forestmap']['wall_s']:.1f}" for c in cases) + " | 100% |")
+    L += cpu_table(cases)
     sy = [c for c in cases if (c.get("sylva") or {}).get("phases")]
     if sy:
         names = [n for _, n in SYLVA_PHASES] + ["report, exit"]
@@ -905,6 +958,41 @@ def report(cases: list[dict], meta: dict) -> str:
 
 
 # ----------------------------------------------------------------------------- main
+
+def cpu_table(cases: list[dict]) -> list[str]:
+    """Markdown lines: forestmap's CPU by process, its step bodies' share, against Sylva's CPU."""
+    have = [c for c in cases if (c["forestmap"].get("cpu_by_process") or {}).get("main")]
+    if not have:
+        return []
+    cores = os.cpu_count() or 2
+    rows = {"main process": [], "fork server": [], "workers": [], "total (sampled)": [],
+            "step bodies (their threads)": [], "the rest": [], "Sylva's CPU": [],
+            f"step bodies / {cores} cores / Sylva's wall": []}
+    for c in have:
+        fm, p = c["forestmap"], c["forestmap"]["cpu_by_process"]
+        total = p["main"] + p["fork server"] + p["workers"] + p["other"]
+        body = fm.get("step_cpu_s")
+        sylva = c.get("sylva") or {}
+        rows["main process"].append(f"{p['main']:.1f}")
+        rows["fork server"].append(f"{p['fork server']:.1f}")
+        rows["workers"].append(f"{p['workers']:.1f} ({p.get('workers_n', 0)})")
+        rows["total (sampled)"].append(f"{total:.1f}")
+        rows["step bodies (their threads)"].append(_f(body))
+        rows["the rest"].append("-" if body is None else f"{total - body:.1f} ({(total - body) / total:.0%})")
+        s_cpu = (sylva.get("user_s") or math.nan) + (sylva.get("sys_s") or math.nan)
+        rows["Sylva's CPU"].append(_f(None if math.isnan(s_cpu) else s_cpu))
+        wall = sylva.get("wall_s")
+        rows[f"step bodies / {cores} cores / Sylva's wall"].append(
+            "-" if body is None or not wall else f"{body / cores / wall:.2f}")
+    return ["", "**Where forestmap's CPU goes** (CPU seconds by process, as last sampled every "
+            "0.5 s; step bodies: the CPU of the steps' own threads, their `cpu_seconds` metadata, "
+            "every materialisation; the rest: start-up imports, Dagster's runs and steps, Parquet "
+            "writes, exports and report, Open3D's own threads; the last row is the wall ratio the "
+            "step bodies alone would give on this machine's cores):", "",
+            "| CPU s | " + " | ".join(case_name(c) for c in have) + " |",
+            "|---|" + "---|" * len(have),
+            *[f"| {k} | " + " | ".join(v) + " |" for k, v in rows.items()]]
+
 
 def backfill(case: dict, rundir: Path) -> dict:
     """--report-only: derive what an older case.json lacks from the run's files, if kept."""
