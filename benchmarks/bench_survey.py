@@ -468,7 +468,7 @@ STEP = re.compile(r"^  (?:\[(?P<scan>[^\]]+)\] )?(?P<stage>[a-z_]+) \((?P<s>\d+(
 PAIR = re.compile(r"^  \[(?P<pair>\S+__\S+)\] pairwise_registrations \((?P<s>\d+(?:\.\d+)?) s\)$")
 
 
-def stage_breakdown(lines: list[tuple[float, str]], wall: float,
+def stage_breakdown(lines: list[tuple[float, str]],
                     rss: list[tuple[float, int]] = ()) -> dict[str, list[float]]:
     """{stage: [seconds, peak GiB]} from forestmap's log: seconds summed over the scans, peak
     resident memory of the tree sampled while the stage ran (NaN without samples); plus the
@@ -568,7 +568,7 @@ def run_forestmap(case: dict, rundir: Path) -> dict:
     res["peak_gib"] = peak_gib(m)
     after = code_state()
     res["code"] = code if after == code else f"{code}, changed during the run to {after}"
-    res["stages"] = stage_breakdown(m["lines"], m["wall_s"], m["rss"])
+    res["stages"] = stage_breakdown(m["lines"], m["rss"])
     res["cpu_by_process"] = cpu_by_process(m.get("procs", {}))
     res["step_cpu_s"] = step_cpu(case, home)
     res["pair_seconds"] = [float(p["s"]) for _, s in m["lines"] if (p := PAIR.match(s))]
@@ -775,6 +775,41 @@ def summary_errors(rows: list[dict]) -> tuple[int, float | None, float | None, f
             max(abs(r["heading"]) for r in ok))
 
 
+def cpu_table(cases: list[dict]) -> list[str]:
+    """Markdown lines: forestmap's CPU by process, its step bodies' share, against Sylva's CPU."""
+    have = [c for c in cases if (c["forestmap"].get("cpu_by_process") or {}).get("main")]
+    if not have:
+        return []
+    cores = os.cpu_count() or 2
+    rows = {"main process": [], "fork server": [], "workers": [], "total (sampled)": [],
+            "step bodies (their threads)": [], "the rest": [], "Sylva's CPU": [],
+            f"step bodies / {cores} cores / Sylva's wall": []}
+    for c in have:
+        fm, p = c["forestmap"], c["forestmap"]["cpu_by_process"]
+        total = p["main"] + p["fork server"] + p["workers"] + p["other"]
+        body = fm.get("step_cpu_s")
+        sylva = c.get("sylva") or {}
+        rows["main process"].append(f"{p['main']:.1f}")
+        rows["fork server"].append(f"{p['fork server']:.1f}")
+        rows["workers"].append(f"{p['workers']:.1f} ({p.get('workers_n', 0)})")
+        rows["total (sampled)"].append(f"{total:.1f}")
+        rows["step bodies (their threads)"].append(_f(body))
+        rows["the rest"].append("-" if body is None else f"{total - body:.1f} ({(total - body) / total:.0%})")
+        s_cpu = (sylva.get("user_s") or math.nan) + (sylva.get("sys_s") or math.nan)
+        rows["Sylva's CPU"].append(_f(None if math.isnan(s_cpu) else s_cpu))
+        wall = sylva.get("wall_s")
+        rows[f"step bodies / {cores} cores / Sylva's wall"].append(
+            "-" if body is None or not wall else f"{body / cores / wall:.2f}")
+    return ["", "**Where forestmap's CPU goes** (CPU seconds by process, as last sampled every "
+            "0.5 s; step bodies: the CPU of the steps' own threads, their `cpu_seconds` metadata, "
+            "every materialisation; the rest: start-up imports, Dagster's runs and steps, Parquet "
+            "writes, exports and report, Open3D's own threads; the last row is the wall ratio the "
+            "step bodies alone would give on this machine's cores):", "",
+            "| CPU s | " + " | ".join(case_name(c) for c in have) + " |",
+            "|---|" + "---|" * len(have),
+            *[f"| {k} | " + " | ".join(v) + " |" for k, v in rows.items()]]
+
+
 def report(cases: list[dict], meta: dict) -> str:
     L = ["## Whole survey: forestmap vs Sylva (`benchmarks/bench_survey.py`, issue 16)", ""]
     L += [meta["intro"], ""]
@@ -958,41 +993,6 @@ def report(cases: list[dict], meta: dict) -> str:
 
 
 # ----------------------------------------------------------------------------- main
-
-def cpu_table(cases: list[dict]) -> list[str]:
-    """Markdown lines: forestmap's CPU by process, its step bodies' share, against Sylva's CPU."""
-    have = [c for c in cases if (c["forestmap"].get("cpu_by_process") or {}).get("main")]
-    if not have:
-        return []
-    cores = os.cpu_count() or 2
-    rows = {"main process": [], "fork server": [], "workers": [], "total (sampled)": [],
-            "step bodies (their threads)": [], "the rest": [], "Sylva's CPU": [],
-            f"step bodies / {cores} cores / Sylva's wall": []}
-    for c in have:
-        fm, p = c["forestmap"], c["forestmap"]["cpu_by_process"]
-        total = p["main"] + p["fork server"] + p["workers"] + p["other"]
-        body = fm.get("step_cpu_s")
-        sylva = c.get("sylva") or {}
-        rows["main process"].append(f"{p['main']:.1f}")
-        rows["fork server"].append(f"{p['fork server']:.1f}")
-        rows["workers"].append(f"{p['workers']:.1f} ({p.get('workers_n', 0)})")
-        rows["total (sampled)"].append(f"{total:.1f}")
-        rows["step bodies (their threads)"].append(_f(body))
-        rows["the rest"].append("-" if body is None else f"{total - body:.1f} ({(total - body) / total:.0%})")
-        s_cpu = (sylva.get("user_s") or math.nan) + (sylva.get("sys_s") or math.nan)
-        rows["Sylva's CPU"].append(_f(None if math.isnan(s_cpu) else s_cpu))
-        wall = sylva.get("wall_s")
-        rows[f"step bodies / {cores} cores / Sylva's wall"].append(
-            "-" if body is None or not wall else f"{body / cores / wall:.2f}")
-    return ["", "**Where forestmap's CPU goes** (CPU seconds by process, as last sampled every "
-            "0.5 s; step bodies: the CPU of the steps' own threads, their `cpu_seconds` metadata, "
-            "every materialisation; the rest: start-up imports, Dagster's runs and steps, Parquet "
-            "writes, exports and report, Open3D's own threads; the last row is the wall ratio the "
-            "step bodies alone would give on this machine's cores):", "",
-            "| CPU s | " + " | ".join(case_name(c) for c in have) + " |",
-            "|---|" + "---|" * len(have),
-            *[f"| {k} | " + " | ".join(v) + " |" for k, v in rows.items()]]
-
 
 def backfill(case: dict, rundir: Path) -> dict:
     """--report-only: derive what an older case.json lacks from the run's files, if kept."""
