@@ -31,6 +31,7 @@ class PooledSqliteRunStorage(SqliteRunStorage):
         self._pooled: Engine | None = None
         self._pooled_pid = os.getpid()
         self._pooled_lock = threading.Lock()
+        self._run_stats_cols = False
         super().__init__(conn_string, inst_data)
         track(self)
 
@@ -56,6 +57,13 @@ class PooledSqliteRunStorage(SqliteRunStorage):
     def connect(self) -> Iterator[Connection]:
         with self._engine().connect() as conn, conn.begin():
             yield conn
+
+    def has_run_stats_index_cols(self) -> bool:
+        """Dagster reflects the runs table's columns at every run lookup and run event (1-2 ms
+        each); once seen they are remembered (a migration only adds columns)."""
+        if not self._run_stats_cols:
+            self._run_stats_cols = super().has_run_stats_index_cols()
+        return self._run_stats_cols
 
     def _close_all(self) -> None:
         with self._pooled_lock:

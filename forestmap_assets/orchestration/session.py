@@ -394,13 +394,17 @@ def _init_worker(queue, threads: int = 0, environ: dict | None = None) -> None:
     inherits (started by an earlier campaign-level run) is its parent's child, not its own.
     ``threads``: the numba threads of a worker that computes its steps itself (in_process);
     ``environ``: the session's environment (a fork server keeps the one it started with). Each
-    worker then loads the compiled kernels numba has cached (:mod:`.kernel_cache`)."""
+    worker then loads the compiled kernels numba has cached (:mod:`.kernel_cache`), and
+    remembers the dynamic partition keys it has seen (it lives for one run and deletes none:
+    :data:`.event_log.REMEMBER_PARTITIONS`)."""
     import multiprocessing.forkserver as forkserver
 
+    from forestmap_assets.orchestration import event_log
     from forestmap_assets.orchestration.kernel_cache import load_cached_kernels
 
     global _QUEUE
     _QUEUE = queue
+    event_log.REMEMBER_PARTITIONS = True
     if environ is not None:
         os.environ.clear()
         os.environ.update(environ)

@@ -87,6 +87,39 @@ def test_a_run_file_is_made_once(tmp_path):
     assert not [p.name for p in (tmp_path / "runs").iterdir() if p.name.endswith(".tmp")]
 
 
+def test_the_run_template_is_made_once_per_home_and_remade_when_damaged(tmp_path):
+    first = PooledSqliteEventLogStorage(str(tmp_path / "history" / "runs"))
+    made = first._template_bytes()
+    kept = first._template_file()
+    assert kept.parent == tmp_path / "history" and kept.read_bytes() == made
+    assert not [p.name for p in kept.parent.iterdir() if p.name.endswith(".tmp")]
+
+    kept.write_bytes(b"not a database")  # a second process reads the kept file, else remakes it
+    second = PooledSqliteEventLogStorage(str(tmp_path / "history" / "runs"))
+    assert second._template_bytes() == made
+    assert kept.read_bytes() == made
+    kept.write_bytes(made[:1000])  # cut short: not a whole number of pages
+    assert PooledSqliteEventLogStorage(str(tmp_path / "history" / "runs"))._template_bytes() == made
+
+
+def test_schema_checks_and_partition_keys_are_remembered_only_once_seen(tmp_path, monkeypatch):
+    storage = PooledSqliteEventLogStorage(str(tmp_path / "runs"))
+    with storage.index_connection() as conn:
+        assert storage._has_asset_key_col_on_connection(conn, "last_materialization_timestamp")
+        assert not storage._has_asset_key_col_on_connection(conn, "no_such_column")
+    assert storage._asset_columns == {"last_materialization_timestamp"}
+
+    storage.add_dynamic_partitions("scans", ["s1"])
+    assert storage.has_dynamic_partition("scans", "s1")
+    assert storage._partitions == set()  # the main process asks the database every time
+    monkeypatch.setattr(event_log, "REMEMBER_PARTITIONS", True)  # as in a run's worker
+    assert storage.has_dynamic_partition("scans", "s1")
+    assert not storage.has_dynamic_partition("scans", "s2")
+    assert storage._partitions == {("scans", "s1")}
+    storage.delete_dynamic_partition("scans", "s1")
+    assert not storage.has_dynamic_partition("scans", "s1")
+
+
 def test_earlier_home_configuration_is_upgraded_custom_kept(tmp_path):
     old = tmp_path / "old"
     old.mkdir()

@@ -38,6 +38,21 @@ def test_runs_are_in_dagster_file_and_closing_leaves_no_wal(tmp_path):
     assert not [p.name for p in (home / "history").iterdir() if "-wal" in p.name or "-shm" in p.name]
 
 
+def test_the_run_columns_check_is_remembered_once_true(tmp_path, monkeypatch):
+    storage = PooledSqliteRunStorage.from_local(str(tmp_path / "history"))
+    calls = []
+    real = SqliteRunStorage.has_run_stats_index_cols
+
+    def counted(self):
+        calls.append(1)
+        return real(self)
+
+    monkeypatch.setattr(SqliteRunStorage, "has_run_stats_index_cols", counted)
+    storage._run_stats_cols = False  # as before its first check (its opening made one)
+    assert storage.has_run_stats_index_cols() and storage.has_run_stats_index_cols()
+    assert len(calls) == 1
+
+
 def test_a_forked_child_opens_its_own_engine(tmp_path):
     storage = PooledSqliteRunStorage.from_local(str(tmp_path / "history"))
     parent = storage._engine()
