@@ -9,11 +9,12 @@ Here, per process:
 
 - one engine per database file, kept open (the last :data:`OPEN_SHARDS` files);
 - a new run's database is a copy of an empty one that Dagster's own initialisation made once
-  in this process (same tables, same Alembic stamp, WAL journal), written under a temporary
-  name and linked into place, so no process ever sees half a file;
+  for the home (same tables, same Alembic stamp, WAL journal; kept beside ``runs/``), written
+  under a temporary name and linked into place, so no process ever sees half a file;
 - ``PRAGMA synchronous=NORMAL``: in WAL mode a power cut can lose the last events, never
   corrupt the file (a lost materialisation only means a stage is run again);
-- the existence of a table, once seen, is remembered;
+- the existence of a table, and of the asset table's columns, once seen, is remembered; so
+  are the dynamic partition keys a worker of ``forestmap run`` has seen;
 - a run's file takes in its WAL at each step's start and end (the UI's live view of a run
   watches that file) and when the run ends (its database is then closed).
 
@@ -33,15 +34,19 @@ from collections import OrderedDict
 from collections.abc import Iterator
 from pathlib import Path
 
+import sqlalchemy
 from dagster import DagsterEventType, StringSource
 from dagster._core.storage.event_log.sqlite.sqlite_event_log import (
     INDEX_SHARD_NAME,
     SqliteEventLogStorage,
 )
 from dagster._core.storage.sqlite import SQLITE_BUSY_TIMEOUT_SECONDS
+from dagster.version import __version__ as dagster_version
 from sqlalchemy import create_engine, event
 from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.pool import NullPool
+
+from forestmap_assets.io.writers import atomic_write
 
 OPEN_SHARDS = 8  # databases kept open per process (the index and the runs in progress)
 _RUN_END = {DagsterEventType.RUN_SUCCESS, DagsterEventType.RUN_FAILURE, DagsterEventType.RUN_CANCELED}
@@ -151,16 +156,12 @@ class PooledSqliteEventLogStorage(SqliteEventLogStorage):
     def _template_file(self) -> Path:
         """Where the home keeps its empty run database, beside ``runs/`` (named for the Dagster
         and SQLAlchemy versions that made it)."""
-        import sqlalchemy
-        from dagster.version import __version__ as dagster_version
-
         return Path(self._base_dir).parent / f".run-template-{dagster_version}-{sqlalchemy.__version__}.db"
 
     def _template_bytes(self) -> bytes:
         """An empty run database as Dagster's own initialisation makes it: made once per home
         (0.06-0.1 s a process, which every process of a run paid) and kept beside ``runs/``,
-        written under a temporary name and renamed; a file that is not a whole SQLite
-        database is made again."""
+        written atomically; a file that is not a whole SQLite database is made again."""
         if self._template is None:
             kept = self._template_file()
             with contextlib.suppress(OSError):
@@ -178,12 +179,8 @@ class PooledSqliteEventLogStorage(SqliteEventLogStorage):
                 self._initdb(engine)
                 engine.dispose()
                 self._template = path.read_bytes()
-            part = kept.with_name(f"{kept.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-            with contextlib.suppress(OSError):
-                part.write_bytes(self._template)
-                os.replace(part, kept)
-            with contextlib.suppress(FileNotFoundError):
-                part.unlink()
+            with contextlib.suppress(OSError), atomic_write(kept) as tmp:
+                tmp.write_bytes(self._template)
         return self._template
 
     def _new_run_shard(self, shard: str) -> bool:
